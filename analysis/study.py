@@ -1,0 +1,502 @@
+"""A whole study: every trial → per subject × condition → per condition.
+
+1. Trials that cannot be analysed are skipped and listed with the reason (never fatal):
+   familiarization, aborted, incomplete, superseded, duplicates of a measured repetition, and
+   trials whose own analysis raised a ``ValueError`` (too short, wrong rate, …).
+2. Per trial (:func:`analyze_trial`, a top-level function so it can run in worker processes):
+   period selection, Fourier coefficients, grip-force moments over the analysed samples. It
+   runs on the given ``concurrent.futures.Executor``, on a ``ProcessPoolExecutor(jobs)`` when
+   ``jobs > 1``, or in this process.
+3. Per subject × condition, over the measured repetitions: FRF, arm fit, VAF (pooled over the
+   repetitions' analysed periods), FIT%, grip-force mean and SD (pooled over all analysed
+   samples of the repetitions, so slow drifts between repetitions count as variability).
+4. Per condition: group FRF (complex mean over subjects, 95 % intervals) and the arm fit to it;
+   grip force over subjects, including the median of the subjects' means (the LPV model's
+   scheduling variable).
+
+Keys in :meth:`StudyAnalysis.to_dict` carry their units; NaN and infinities become ``null``.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from analysis.armfit import ArmFit, FitOptions, fit_arm, vaf_percent
+from analysis.frf import (
+    DEFAULT_NOISE_BINS_PER_SIDE,
+    FrequencyResponse,
+    GroupFrequencyResponse,
+    TrialSpectra,
+    frequency_response,
+    group_frequency_response,
+    trial_spectra,
+)
+from analysis.periods import (
+    DEFAULT_DETECT_BELOW_MAX_DB,
+    DEFAULT_DETECT_FLOOR_DB,
+    DEFAULT_MIN_RUN_IN_S,
+)
+from protocols.records import (
+    STATUS_ABORTED,
+    STATUS_COMPLETE,
+    STATUS_INCOMPLETE,
+    STATUS_SUPERSEDED,
+    TrialRecord,
+)
+
+PAPER_CONDITION_ORDER = ("RT", "BT18", "BT12", "BT8", "BT5", "PT")
+
+# progress(done, total, label): called in the calling process after each trial's analysis.
+ProgressCallback = Callable[[int, int, str], None]
+
+
+@dataclass(frozen=True)
+class AnalysisOptions:
+    period_s: float | None = None  # only for records without a design (default 45 s)
+    min_run_in_s: float = DEFAULT_MIN_RUN_IN_S
+    noise_bins_per_side: int = DEFAULT_NOISE_BINS_PER_SIDE
+    detect_floor_db: float = DEFAULT_DETECT_FLOOR_DB
+    detect_below_max_db: float = DEFAULT_DETECT_BELOW_MAX_DB
+    fit: FitOptions = field(default_factory=FitOptions)
+    confidence: float = 0.95
+
+    def to_dict(self) -> dict:
+        return {
+            "period_s": self.period_s,
+            "min_run_in_s": self.min_run_in_s,
+            "noise_bins_per_side": self.noise_bins_per_side,
+            "detect_floor_dB": self.detect_floor_db,
+            "detect_below_max_dB": self.detect_below_max_db,
+            "fit": self.fit.to_dict(),
+            "confidence": self.confidence,
+        }
+
+
+@dataclass(frozen=True)
+class SkippedTrial:
+    label: str
+    source: str
+    reason: str
+
+    def to_dict(self) -> dict:
+        return {"label": self.label, "source": self.source, "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class GripMoments:
+    """Count, mean and sum of squared deviations of the finite grip samples; pools exactly."""
+
+    n: int
+    mean: float
+    m2: float
+
+    @staticmethod
+    def of(x: np.ndarray) -> GripMoments:
+        x = np.asarray(x, dtype=float)
+        x = x[np.isfinite(x)]
+        if x.size == 0:
+            return GripMoments(0, float("nan"), float("nan"))
+        m = float(x.mean())
+        return GripMoments(int(x.size), m, float(np.sum((x - m) ** 2)))
+
+    @staticmethod
+    def pool(parts: Sequence[GripMoments]) -> GripMoments:
+        parts = [p for p in parts if p.n > 0]
+        if not parts:
+            return GripMoments(0, float("nan"), float("nan"))
+        n = sum(p.n for p in parts)
+        mean = sum(p.n * p.mean for p in parts) / n
+        m2 = sum(p.m2 + p.n * (p.mean - mean) ** 2 for p in parts)
+        return GripMoments(n, mean, m2)
+
+    @property
+    def sd(self) -> float:
+        return math.sqrt(self.m2 / (self.n - 1)) if self.n > 1 else float("nan")
+
+
+@dataclass(frozen=True)
+class TrialAnalysis:
+    """What :func:`analyze_trial` sends back: small, picklable, no time series."""
+
+    index: int  # position in the records list given to analyze_study
+    spectra: TrialSpectra
+    grip: GripMoments
+
+
+def analyze_trial(index: int, record: TrialRecord, options: AnalysisOptions) -> TrialAnalysis:
+    """Per-trial work: periods, Fourier coefficients, grip moments. Raises ``ValueError``."""
+    spectra = trial_spectra(
+        record,
+        period_s=options.period_s,
+        min_run_in_s=options.min_run_in_s,
+        noise_bins_per_side=options.noise_bins_per_side,
+        detect_floor_db=options.detect_floor_db,
+        detect_below_max_db=options.detect_below_max_db,
+    )
+    grip = GripMoments.of(spectra.selection.segment(record.grip_force_N))
+    return TrialAnalysis(index, spectra, grip)
+
+
+@dataclass(frozen=True)
+class SubjectConditionResult:
+    subject: str
+    condition: str
+    repetitions: tuple[int, ...]
+    trials: tuple[TrialSpectra, ...]
+    frf: FrequencyResponse
+    fit: ArmFit | None
+    grip: GripMoments
+    fit_error: str | None = None
+
+    @property
+    def vaf_percent(self) -> float | None:
+        return None if self.fit is None else self.fit.vaf_percent
+
+    @property
+    def fit_percent(self) -> float | None:
+        return None if self.fit is None else self.fit.fit_percent
+
+    @property
+    def grip_mean_N(self) -> float:
+        return self.grip.mean
+
+    @property
+    def grip_sd_N(self) -> float:
+        return self.grip.sd
+
+    def row(self) -> dict:
+        """One flat row for tables and statistics."""
+        row = {"subject": self.subject, "condition": self.condition}
+        if self.fit is not None:
+            row.update(self.fit.params.to_dict())
+            row.update({f"sem_{k}": v for k, v in self.fit.to_dict()["sem"].items()})
+        row.update(
+            {
+                "vaf_percent": self.vaf_percent,
+                "fit_percent": self.fit_percent,
+                "grip_mean_N": self.grip_mean_N,
+                "grip_sd_N": self.grip_sd_N,
+                "n_repetitions": len(self.repetitions),
+            }
+        )
+        return row
+
+    def to_dict(self) -> dict:
+        return {
+            "subject": self.subject,
+            "condition": self.condition,
+            "repetitions": list(self.repetitions),
+            "trials": [
+                {
+                    "label": t.label,
+                    "source": t.source,
+                    "periods": t.selection.to_dict(),
+                    "excited_bins_origin": t.excitation.origin,
+                }
+                for t in self.trials
+            ],
+            "frf": self.frf.to_dict(),
+            "fit": None if self.fit is None else self.fit.to_dict(),
+            "fit_error": self.fit_error,
+            "vaf_percent": self.vaf_percent,
+            "fit_percent": self.fit_percent,
+            "grip_mean_N": self.grip_mean_N,
+            "grip_sd_N": self.grip_sd_N,
+            "grip_n_samples": self.grip.n,
+        }
+
+
+@dataclass(frozen=True)
+class ConditionResult:
+    condition: str
+    subjects: tuple[str, ...]
+    group_frf: GroupFrequencyResponse
+    fit: ArmFit | None
+    grip_subject_means_N: np.ndarray
+    grip_subject_sds_N: np.ndarray
+    fit_error: str | None = None
+
+    @property
+    def grip_median_of_means_N(self) -> float:
+        """The LPV scheduling variable μ: median over subjects of their mean grip force."""
+        return float(np.nanmedian(self.grip_subject_means_N))
+
+    def to_dict(self) -> dict:
+        return {
+            "condition": self.condition,
+            "subjects": list(self.subjects),
+            "n_subjects": len(self.subjects),
+            "group_frf": self.group_frf.to_dict(),
+            "fit": None if self.fit is None else self.fit.to_dict(),
+            "fit_error": self.fit_error,
+            "fit_percent": None if self.fit is None else self.fit.fit_percent,
+            "grip_mean_of_subject_means_N": float(np.nanmean(self.grip_subject_means_N)),
+            "grip_median_of_subject_means_N": self.grip_median_of_means_N,
+            "grip_sd_between_subjects_N": (
+                float(np.nanstd(self.grip_subject_means_N, ddof=1))
+                if len(self.subjects) > 1
+                else None
+            ),
+            "grip_mean_of_subject_sds_N": float(np.nanmean(self.grip_subject_sds_N)),
+        }
+
+
+def _json_clean(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _json_clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_json_clean(v) for v in x]
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+@dataclass(frozen=True)
+class StudyAnalysis:
+    subject_conditions: tuple[SubjectConditionResult, ...]
+    conditions: tuple[ConditionResult, ...]
+    skipped: tuple[SkippedTrial, ...]
+    options: AnalysisOptions
+    notes: tuple[str, ...] = ()
+
+    def result(self, subject: str, condition: str) -> SubjectConditionResult:
+        for r in self.subject_conditions:
+            if r.subject == subject and r.condition == condition:
+                return r
+        raise KeyError(f"no result for subject {subject!r}, condition {condition!r}")
+
+    def condition(self, condition: str) -> ConditionResult:
+        for c in self.conditions:
+            if c.condition == condition:
+                return c
+        raise KeyError(f"no result for condition {condition!r}")
+
+    def operating_points(self) -> list[tuple[str, float, dict[str, float], tuple]]:
+        """Per condition with a group fit: ``(condition, μ_N, parameters, (f_Hz, H, coherence))``
+        with μ the median over subjects of the mean grip force: the tuples
+        ``analysis.lpv.as_operating_points`` accepts."""
+        return [
+            (
+                c.condition,
+                c.grip_median_of_means_N,
+                c.fit.params.as_dict(),
+                (c.group_frf.frequencies_hz, c.group_frf.H, c.group_frf.coherence),
+            )
+            for c in self.conditions
+            if c.fit is not None
+        ]
+
+    def table(self) -> list[dict]:
+        """One flat row per subject × condition (parameters, SEMs, VAF, FIT%, grip)."""
+        return [r.row() for r in self.subject_conditions]
+
+    def to_dict(self) -> dict:
+        return _json_clean(
+            {
+                "options": self.options.to_dict(),
+                "skipped_trials": [s.to_dict() for s in self.skipped],
+                "notes": list(self.notes),
+                "subject_condition_table": self.table(),
+                "subject_conditions": [r.to_dict() for r in self.subject_conditions],
+                "conditions": [c.to_dict() for c in self.conditions],
+            }
+        )
+
+
+def _skip_reason(rec: TrialRecord) -> str | None:
+    if rec.familiarization:
+        return "familiarization trial"
+    if rec.status == STATUS_ABORTED:
+        return "aborted" + (f": {rec.abort_reason}" if rec.abort_reason else "")
+    if rec.status == STATUS_INCOMPLETE:
+        return "incomplete (still running, or the recording stopped mid-trial)"
+    if rec.status == STATUS_SUPERSEDED:
+        return "superseded by a later attempt of the same trial"
+    if rec.status != STATUS_COMPLETE:
+        return f"unknown status {rec.status!r}"
+    return None
+
+
+def _condition_key(c: str) -> tuple[int, str]:
+    order = PAPER_CONDITION_ORDER
+    return (order.index(c), "") if c in order else (len(order), c)
+
+
+def _run_trials(
+    jobs_list: list[tuple[int, TrialRecord]],
+    options: AnalysisOptions,
+    executor: cf.Executor | None,
+    jobs: int,
+    progress: ProgressCallback | None,
+) -> tuple[list[TrialAnalysis], list[tuple[int, str]]]:
+    done: list[TrialAnalysis] = []
+    failed: list[tuple[int, str]] = []
+    total = len(jobs_list)
+
+    def report(i: int, label: str) -> None:
+        if progress is not None:
+            progress(i, total, label)
+
+    if executor is None and jobs <= 1:
+        for k, (i, rec) in enumerate(jobs_list, 1):
+            try:
+                done.append(analyze_trial(i, rec, options))
+            except ValueError as e:
+                failed.append((i, str(e)))
+            report(k, rec.label())
+        return done, failed
+
+    own = executor is None
+    ex = executor if executor is not None else cf.ProcessPoolExecutor(max_workers=jobs)
+    try:
+        futures = {ex.submit(analyze_trial, i, rec, options): (i, rec) for i, rec in jobs_list}
+        for k, fut in enumerate(cf.as_completed(futures), 1):
+            i, rec = futures[fut]
+            try:
+                done.append(fut.result())
+            except ValueError as e:
+                failed.append((i, str(e)))
+            report(k, rec.label())
+    finally:
+        if own:
+            ex.shutdown(cancel_futures=True)
+    done.sort(key=lambda t: t.index)  # completion order must not change the results
+    failed.sort()
+    return done, failed
+
+
+def analyze_study(
+    records: Sequence[TrialRecord],
+    *,
+    executor: cf.Executor | None = None,
+    jobs: int = 1,
+    progress: ProgressCallback | None = None,
+    options: AnalysisOptions | None = None,
+) -> StudyAnalysis:
+    """Analyse every usable trial of a study (see the module docstring)."""
+    opt = options or AnalysisOptions()
+    skipped: list[SkippedTrial] = []
+    notes: list[str] = []
+
+    # Keep one record per (subject, condition, repetition): the latest attempt.
+    chosen: dict[tuple[str, str, int], int] = {}
+    for i, rec in enumerate(records):
+        reason = _skip_reason(rec)
+        if reason is not None:
+            skipped.append(SkippedTrial(rec.label(), rec.source, reason))
+            continue
+        key = (rec.subject, rec.condition, rec.repetition)
+        if key in chosen:
+            j = chosen[key]
+            old = records[j]
+            # The later attempt wins: by trial_index when known, else by position in the list.
+            later = (rec.trial_index is None or old.trial_index is None) or (
+                rec.trial_index >= old.trial_index
+            )
+            keep, drop = (i, j) if later else (j, i)
+            chosen[key] = keep
+            skipped.append(
+                SkippedTrial(
+                    records[drop].label(),
+                    records[drop].source,
+                    f"duplicate of {records[keep].source or records[keep].label()} "
+                    "(the later attempt is used)",
+                )
+            )
+        else:
+            chosen[key] = i
+    todo = [(i, records[i]) for i in sorted(chosen.values())]
+
+    done, failed = _run_trials(todo, opt, executor, jobs, progress)
+    for i, msg in failed:
+        skipped.append(
+            SkippedTrial(records[i].label(), records[i].source, f"not analysable: {msg}")
+        )
+
+    cells: dict[tuple[str, str], list[TrialAnalysis]] = {}
+    for t in done:
+        rec = records[t.index]
+        cells.setdefault((rec.subject, rec.condition), []).append(t)
+
+    per_cell: list[SubjectConditionResult] = []
+    for (subj, cond), items in sorted(
+        cells.items(), key=lambda kv: (kv[0][0], _condition_key(kv[0][1]))
+    ):
+        items.sort(key=lambda t: records[t.index].repetition)
+        label = f"{subj} {cond}"
+        try:
+            frf = frequency_response([t.spectra for t in items])
+        except ValueError as e:
+            notes.append(f"{label}: repetitions not combined, left out: {e}")
+            continue
+        fit, fit_error = None, None
+        try:
+            fit = fit_arm(frf, opt.fit)
+            segments = [
+                (
+                    t.spectra.selection.segment(records[t.index].driver_torque_Nm),
+                    t.spectra.selection.segment(records[t.index].wheel_angle_rad),
+                )
+                for t in items
+            ]
+            rates = [records[t.index].fs_hz for t in items]
+            fit = fit.with_vaf(vaf_percent(fit.params, segments, rates))
+        except ValueError as e:
+            fit_error = str(e)
+            notes.append(f"{label}: no arm fit: {e}")
+        per_cell.append(
+            SubjectConditionResult(
+                subject=subj,
+                condition=cond,
+                repetitions=tuple(records[t.index].repetition for t in items),
+                trials=tuple(t.spectra for t in items),
+                frf=frf,
+                fit=fit,
+                grip=GripMoments.pool([t.grip for t in items]),
+                fit_error=fit_error,
+            )
+        )
+
+    per_condition: list[ConditionResult] = []
+    for cond in sorted({r.condition for r in per_cell}, key=_condition_key):
+        rs = [r for r in per_cell if r.condition == cond]
+        try:
+            group = group_frequency_response(
+                [r.frf for r in rs], subjects=[r.subject for r in rs], confidence=opt.confidence
+            )
+        except ValueError as e:
+            notes.append(f"{cond}: no group result: {e}")
+            continue
+        fit, fit_error = None, None
+        try:
+            fit = fit_arm(group, opt.fit)
+        except ValueError as e:
+            fit_error = str(e)
+            notes.append(f"{cond}: no group arm fit: {e}")
+        per_condition.append(
+            ConditionResult(
+                condition=cond,
+                subjects=tuple(r.subject for r in rs),
+                group_frf=group,
+                fit=fit,
+                grip_subject_means_N=np.array([r.grip_mean_N for r in rs]),
+                grip_subject_sds_N=np.array([r.grip_sd_N for r in rs]),
+                fit_error=fit_error,
+            )
+        )
+
+    return StudyAnalysis(
+        subject_conditions=tuple(per_cell),
+        conditions=tuple(per_condition),
+        skipped=tuple(skipped),
+        options=opt,
+        notes=tuple(notes),
+    )

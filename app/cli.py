@@ -1,0 +1,142 @@
+"""The ``steerlab`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+EXIT_BAD_INPUT = 2
+
+
+class Progress:
+    """A one-line progress bar on stderr (on a non-terminal: a line every 5 s and at the end)."""
+
+    def __init__(self, label: str, stream=None, width: int = 30) -> None:
+        self.label, self.stream, self.width = label, stream or sys.stderr, width
+        self.t0 = time.monotonic()
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self._last = 0.0
+
+    def __call__(self, done: int, total: int, note: str = "") -> None:
+        now = time.monotonic()
+        if not self.tty and done < total:
+            if now - self._last < 5.0:
+                return
+        self._last = now
+        frac = done / total if total else 1.0
+        bar = "#" * int(frac * self.width)
+        eta = (now - self.t0) / frac * (1 - frac) if frac > 0 else 0.0
+        line = f"{self.label} [{bar:<{self.width}}] {done}/{total} {note[:28]:<28} eta {eta:5.0f} s"
+        end = "\n" if (done >= total or not self.tty) else ""
+        self.stream.write(("\r" if self.tty else "") + line + end)
+        self.stream.flush()
+
+
+def _cmd_simulate(a: argparse.Namespace) -> int:
+    from app.simulate import simulate_study
+
+    t0 = time.monotonic()
+    res = simulate_study(
+        a.subjects,
+        a.out,
+        seed=a.seed,
+        protocol_path=a.protocol,
+        realtime=a.realtime,
+        resume=a.resume,
+        overwrite=a.overwrite,
+        jobs=a.jobs,
+        world=_world_from_model(a.model) if a.model else None,
+        progress=Progress("simulate"),
+    )
+    print(f"{len(res)} session file(s) in {a.out} ({time.monotonic() - t0:.1f} s)")
+    return 0
+
+
+def _world_from_model(path: str):
+    from hardware.sim.model_file import load_world_model
+
+    return load_world_model(path)
+
+
+def _cmd_export(a: argparse.Namespace) -> int:
+    from protocols.interchange import export_study
+
+    paths = export_study(a.dir, a.out)
+    print(f"exported {len(paths)} trial(s) to {a.out}")
+    return 0
+
+
+def _cmd_import(a: argparse.Namespace) -> int:
+    from protocols.interchange import import_study
+
+    paths = import_study(a.csvdir, a.out, overwrite=a.overwrite)
+    print(f"imported into {len(paths)} session file(s) in {a.out}")
+    return 0
+
+
+def _cmd_report(a: argparse.Namespace) -> int:
+    from analysis.report import write_report
+
+    write_report(a.dir, a.out, jobs=a.jobs, progress=Progress("report"))
+    print(f"report written to {Path(a.out) / 'index.html'}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="steerlab",
+        description="Experiment control, data acquisition and analysis for steering-wheel "
+        "admittance studies (Pronker et al. 2017).",
+    )
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("simulate", help="run the protocol for N simulated subjects")
+    s.add_argument("--subjects", type=int, required=True, help="number of simulated subjects")
+    s.add_argument("--out", required=True, help="directory for the session files")
+    s.add_argument("--seed", type=int, default=0, help="population and noise seed (default 0)")
+    s.add_argument("--protocol", help="protocol TOML (default: the paper's protocol)")
+    s.add_argument("--realtime", action="store_true", help="pace at wall-clock speed")
+    g = s.add_mutually_exclusive_group()
+    g.add_argument("--resume", action="store_true", help="complete existing session files")
+    g.add_argument("--overwrite", action="store_true", help="replace existing session files")
+    s.add_argument("--jobs", type=int, default=None, help="worker processes (default: cores)")
+    s.add_argument("--model", help="extended world model (model.toml from steerlab diagnose)")
+    s.set_defaults(func=_cmd_simulate)
+
+    e = sub.add_parser("export", help="session files → trial interchange CSV + JSON")
+    e.add_argument("dir")
+    e.add_argument("--out", required=True)
+    e.set_defaults(func=_cmd_export)
+
+    i = sub.add_parser("import", help="trial interchange CSV + JSON → session files")
+    i.add_argument("csvdir")
+    i.add_argument("--out", required=True)
+    i.add_argument("--overwrite", action="store_true")
+    i.set_defaults(func=_cmd_import)
+
+    r = sub.add_parser("report", help="analyse a study and write the report")
+    r.add_argument("dir")
+    r.add_argument("--out", required=True)
+    r.add_argument("--jobs", type=int, default=1)
+    r.set_defaults(func=_cmd_report)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from app.errors import USER_ERRORS
+
+    try:
+        return args.func(args)
+    except USER_ERRORS as e:
+        print(f"steerlab {args.command}: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print(f"steerlab {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

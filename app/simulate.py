@@ -1,0 +1,175 @@
+"""``steerlab simulate``: run the protocol for N simulated subjects through the engine."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+from hardware.sim.physiology import PopulationSpread, make_population
+from hardware.sim.rig import simulated_rig
+from hardware.sim.world import WorldConfig
+from protocols.datafile import DataFileError, SessionFile, SessionWriter
+from protocols.engine import SessionEngine, State
+from protocols.events import TrialEnded
+from protocols.protocol import Protocol, load_protocol
+from protocols.session import build_plan, subject_id
+
+
+class SimulateError(ValueError):
+    pass
+
+
+@dataclass(frozen=True)
+class SimulationJob:
+    subject_number: int
+    out_dir: str
+    seed: int
+    protocol_path: str | None
+    realtime: bool
+    world: WorldConfig
+    resume: bool
+
+
+def session_path(out_dir: str | Path, subject: str) -> Path:
+    return Path(out_dir) / f"{subject}.h5"
+
+
+def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | None = None) -> dict:
+    """Run one simulated subject's session (or its remaining trials) into its session file."""
+    protocol = load_protocol(job.protocol_path)
+    population = make_population(job.subject_number, seed=job.seed)
+    physiology = population[job.subject_number - 1]
+    plan = build_plan(protocol, job.subject_number)
+    path = session_path(job.out_dir, plan.subject)
+    attempts = SessionFile(path).attempts() if (job.resume and path.exists()) else None
+    rig = simulated_rig(physiology, job.world, protocol.wheel, PopulationSpread())
+    loop = rig.device_loop(realtime=True) if job.realtime else rig.batch_loop()
+    engine = SessionEngine(plan, loop, attempts=attempts)
+    writer = SessionWriter(
+        path,
+        extra_attributes={
+            "simulated": True,
+            "simulation_seed": job.seed,
+            "simulated_subject": physiology.to_dict(),
+            "world": job.world.to_dict(),
+        },
+    )
+    engine.subscribe(writer)
+    if on_trial is not None:
+        engine.subscribe(lambda e: on_trial(e) if isinstance(e, TrialEnded) else None)
+    try:
+        state = engine.run()
+    finally:
+        writer.close()
+    return {
+        "subject": plan.subject,
+        "state": state.value,
+        "path": str(path),
+        "remaining": len(engine.pending()),
+    }
+
+
+def _run_subject_reporting(job: SimulationJob, queue) -> dict:
+    return run_subject(job, on_trial=lambda e: queue.put(f"{job.subject_number}:{e.key}"))
+
+
+def check_output(
+    out_dir: Path,
+    subjects: list[str],
+    *,
+    resume: bool,
+    overwrite: bool,
+    protocol: Protocol | None = None,
+) -> None:
+    """Refuse to touch existing session files unless told how (never silently overwrite)."""
+    if resume and overwrite:
+        raise SimulateError("--resume and --overwrite exclude each other")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise SimulateError(f"{out_dir}: exists and is not a directory")
+    existing = [s for s in subjects if session_path(out_dir, s).exists()]
+    if existing and not (resume or overwrite):
+        raise SimulateError(
+            f"{out_dir}: session files exist already for {', '.join(existing)}; "
+            "pass --resume to complete them or --overwrite to replace them"
+        )
+    if resume:
+        for s in existing:
+            try:
+                sf = SessionFile(session_path(out_dir, s))
+            except DataFileError as e:
+                raise SimulateError(f"cannot resume: {e}") from None
+            if protocol is not None and sf.attrs.get("protocol_toml") != protocol.source_text:
+                raise SimulateError(
+                    f"cannot resume {sf.path}: it was recorded with a different protocol "
+                    "(pass the same --protocol as the first run)"
+                )
+
+
+def simulate_study(
+    n_subjects: int,
+    out_dir: str | Path,
+    *,
+    seed: int = 0,
+    protocol_path: str | None = None,
+    realtime: bool = False,
+    resume: bool = False,
+    overwrite: bool = False,
+    jobs: int | None = None,
+    world: WorldConfig | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> list[dict]:
+    if n_subjects < 1:
+        raise SimulateError(f"--subjects must be ≥ 1, got {n_subjects}")
+    protocol: Protocol = load_protocol(protocol_path)  # validates before anything is written
+    out = Path(out_dir)
+    subjects = [subject_id(i) for i in range(1, n_subjects + 1)]
+    check_output(out, subjects, resume=resume, overwrite=overwrite, protocol=protocol)
+    out.mkdir(parents=True, exist_ok=True)
+    if overwrite:
+        for s in subjects:
+            session_path(out, s).unlink(missing_ok=True)
+    world = world or WorldConfig(fs_hz=protocol.loop_rate_hz)
+    jobs_list = [
+        SimulationJob(i, str(out), seed, protocol_path, realtime, world, resume)
+        for i in range(1, n_subjects + 1)
+    ]
+    total = n_subjects * len(build_plan(protocol, 1).trials)
+    done = 0
+
+    def tick(label: str) -> None:
+        nonlocal done
+        done += 1
+        if progress:
+            progress(done, total, label)
+
+    results = []
+    jobs = jobs or min(n_subjects, os.cpu_count() or 1)
+    if jobs <= 1 or realtime or n_subjects == 1:
+        for job in jobs_list:
+            results.append(run_subject(job, on_trial=lambda e: tick(e.key)))
+    else:
+        import multiprocessing as mp
+        import queue as queue_mod
+
+        with mp.Manager() as manager, ProcessPoolExecutor(max_workers=jobs) as pool:
+            q = manager.Queue()
+            futs = [pool.submit(_run_subject_reporting, j, q) for j in jobs_list]
+            pending = set(futs)
+            while pending:
+                try:
+                    tick(q.get(timeout=0.2))
+                except queue_mod.Empty:
+                    pass
+                pending = {f for f in pending if not f.done()}
+            while not q.empty():
+                tick(q.get())
+            for fut in as_completed(futs):
+                results.append(fut.result())
+    results.sort(key=lambda r: r["subject"])
+    bad = [r for r in results if r["state"] != State.DONE.value]
+    if bad:
+        raise SimulateError(f"sessions not completed: {bad}")
+    return results

@@ -1,0 +1,206 @@
+"""The simulated rig: a simulated subject on the simulated world, behind the device interfaces.
+
+``simulated_rig(subject)`` builds it in one call. Two loops run it:
+- :class:`BatchLoop` advances whole blocks inside the compiled world (fast: ``steerlab
+  simulate``);
+- :class:`hardware.loop.DeviceLoop` over the simulated devices advances one sample per cycle,
+  exactly as with the lab's drive and gloves (``--realtime``, and the live path).
+Both give the same samples for the same seed (tested).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from hardware.interfaces import DriveReading, GripReading
+from hardware.loop import LOOP_CHANNELS, DeviceLoop
+from hardware.sim.physiology import ConditionBehaviour, PopulationSpread, SubjectPhysiology
+from hardware.sim.world import World, WorldConfig
+from protocols.engine import LoopControl
+from protocols.protocol import VirtualWheel
+from protocols.session import TrialSetup
+
+
+@dataclass
+class SimulatedSubject:
+    """Decides the arm's behaviour for each trial, from the condition shown on the display."""
+
+    physiology: SubjectPhysiology
+    spread: PopulationSpread = field(default_factory=PopulationSpread)
+
+    def behaviour(self, setup: TrialSetup, cfg: WorldConfig) -> ConditionBehaviour:
+        b = self.physiology.for_trial(setup.spec.condition, setup.spec.trial_index, self.spread)
+        drift = cfg.mechanisms.drift
+        if drift.active:
+            f = drift.factor(setup.spec.trial_index)
+            b = replace(b, arm=b.arm.scaled(k_i=f, k_c=f))
+        return b
+
+    def trial_seed(self, setup: TrialSetup) -> list[int]:
+        return [self.physiology.seed, setup.spec.trial_index, setup.attempt]
+
+
+class SimulatedRig:
+    """World + subject, and the four simulated devices that expose them."""
+
+    def __init__(
+        self,
+        subject: SimulatedSubject,
+        cfg: WorldConfig | None = None,
+        wheel: VirtualWheel | None = None,
+    ) -> None:
+        self.cfg = cfg or WorldConfig()
+        self.subject = subject
+        self.world = World(self.cfg, wheel)
+        self.drive = SimulatedDrive(self.world)
+        self.torque_sensor = SimulatedTorqueSensor(self.world)
+        self.glove = SimulatedGlove(self.world)
+        self.display = SimulatedDisplay()
+
+    def begin_trial(self, setup: TrialSetup) -> ConditionBehaviour:
+        if abs(setup.fs_hz - self.cfg.fs_hz) > 1e-9:
+            self.cfg = replace(self.cfg, fs_hz=setup.fs_hz)
+            self.world.cfg = self.cfg
+        b = self.subject.behaviour(setup, self.cfg)
+        self.world.begin_trial(
+            b, self.subject.physiology.left_share, self.subject.trial_seed(setup)
+        )
+        self.drive.command = 0.0
+        return b
+
+    def device_loop(self, realtime: bool = False, **kw) -> DeviceLoop:
+        return DeviceLoop(
+            self.drive,
+            self.torque_sensor,
+            self.glove,
+            self.display,
+            realtime=realtime,
+            trial_hooks=[self.begin_trial],
+            **kw,
+        )
+
+    def batch_loop(self, block_s: float = 1.0) -> BatchLoop:
+        return BatchLoop(self, block_s)
+
+
+class SimulatedDrive:
+    def __init__(self, world: World) -> None:
+        self.world = world
+        self.enabled = False
+        self.command = 0.0
+
+    def enable(self) -> None:
+        self.enabled = True
+
+    def disable(self) -> None:
+        self.command = 0.0
+        self.enabled = False
+
+    def quick_stop(self) -> None:
+        self.command = 0.0
+
+    def set_torque(self, torque_nm: float) -> None:
+        self.command = float(torque_nm) if self.enabled else 0.0
+
+    def sync(self) -> None:
+        self.world.step(self.command)
+
+    def read(self) -> DriveReading:
+        r = self.world.read()
+        return DriveReading(r["wheel_angle_rad"], r["wheel_velocity_rad_s"], r["motor_torque_Nm"])
+
+
+class SimulatedTorqueSensor:
+    def __init__(self, world: World) -> None:
+        self.world = world
+
+    def read(self) -> float:
+        return float(self.world.read()["driver_torque_Nm"])
+
+    def zero(self) -> None:
+        pass  # the simulated sensor has no offset
+
+
+class SimulatedGlove:
+    def __init__(self, world: World) -> None:
+        self.world = world
+
+    def latest(self) -> GripReading | None:
+        r = self.world.read()
+        return GripReading(r["grip_force_left_N"], r["grip_force_right_N"], time.monotonic())
+
+
+class SimulatedDisplay:
+    """Records what the subject would see (the simulated subject reads the trial directly)."""
+
+    def __init__(self) -> None:
+        self.condition: str | None = None
+        self.boundary_deg = float("inf")
+        self.angle_rad = 0.0
+
+    def show_condition(self, condition: str, boundary_deg: float) -> None:
+        self.condition, self.boundary_deg = condition, boundary_deg
+
+    def show_angle(self, angle_rad: float) -> None:
+        self.angle_rad = angle_rad
+
+
+class BatchLoop:
+    """Runs a trial on the simulated rig in blocks inside the compiled world."""
+
+    def __init__(self, rig: SimulatedRig, block_s: float = 1.0) -> None:
+        self.rig = rig
+        self.block_s = block_s
+
+    def emergency_stop(self) -> None:
+        self.rig.drive.disable()
+
+    def trial_stats(self) -> dict:
+        return {}
+
+    def run_trial(self, setup: TrialSetup, control: LoopControl) -> Iterator[dict]:
+        rig = self.rig
+        rig.begin_trial(setup)
+        rig.display.show_condition(setup.spec.condition, setup.spec.boundary_deg)
+        fs = setup.fs_hz
+        blk = max(1, int(round(self.block_s * fs)))
+        n = setup.n_samples
+        tp = setup.perturbation_nm
+        rig.drive.enable()
+        try:
+            for k in range(0, n, blk):
+                m = min(blk, n - k)
+                out = rig.world.run(tp[k : k + m])
+                left, right = out["grip_force_left_N"], out["grip_force_right_N"]
+                block = {
+                    "time_s": np.arange(k, k + m) / fs,
+                    "perturbation_torque_Nm": np.array(tp[k : k + m]),
+                    "driver_torque_Nm": out["driver_torque_Nm"],
+                    "wheel_angle_rad": out["wheel_angle_rad"],
+                    "wheel_velocity_rad_s": out["wheel_velocity_rad_s"],
+                    "motor_command_Nm": out["motor_command_Nm"],
+                    "motor_torque_Nm": out["motor_torque_Nm"],
+                    "grip_force_N": left + right,
+                    "grip_force_left_N": left,
+                    "grip_force_right_N": right,
+                }
+                assert tuple(block) == LOOP_CHANNELS
+                rig.display.show_angle(float(out["wheel_angle_rad"][-1]))
+                yield block
+                if control.stop_requested:
+                    return
+        finally:
+            rig.drive.disable()
+
+
+def simulated_rig(
+    physiology: SubjectPhysiology,
+    cfg: WorldConfig | None = None,
+    wheel: VirtualWheel | None = None,
+    spread: PopulationSpread | None = None,
+) -> SimulatedRig:
+    return SimulatedRig(SimulatedSubject(physiology, spread or PopulationSpread()), cfg, wheel)

@@ -1,0 +1,398 @@
+"""The simulated physical world: wheel, driver's arm, sensors.
+
+Bodies (angles in rad, positive counter-clockwise seen by the driver):
+
+    I_w θ''  = T_motor − T_d + T_wheel_extra                  (wheel, physical inertia)
+    T_d      = k_c (θ − θ_h) + b_c (θ' − θ_h')               (torque the wheel exerts on the hands)
+    I_i θ_h'' = T_d − b_i θ_h' − k_i θ_h + T_hand_extra        (arm, intrinsic dynamics)
+
+so that θ/T_d = 1/(b_c s + k_c) + 1/(I_i s² + b_i s + k_i), the paper's admittance.
+T_hand_extra carries the remnant and the torques of added mechanisms (reflexes, stiffening,
+time-varying parameters); T_wheel_extra carries wheel-side mechanisms (dry friction).
+
+The linear part is discretised exactly (zero-order hold, matrix exponential); the extra
+torques are held over one sample. One compiled kernel, ``_advance``, runs both a whole block
+(batch: the loop's rendering computed inside) and a single sample (live: the command comes
+from outside, through the drive interface); both draw noise from the same seeded 1-second
+blocks, so the two paths give the same signals.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from numba import njit
+from scipy.linalg import expm
+from scipy.signal import lfilter
+
+from hardware.rendering import VirtualWheel, render_torque
+from hardware.sim.mechanisms import Mechanisms
+from hardware.sim.physiology import ConditionBehaviour
+
+# Indices into the kernel's parameter vector.
+P_KSW, P_BSW, P_QANG, P_TRES, P_KC, P_BC = 0, 1, 2, 3, 4, 5
+P_K3, P_COUL, P_COUL_EPS, P_ACT_ALPHA = 6, 7, 8, 9
+P_RKP, P_RKV, P_RW, P_RZ, P_DT, P_HAS_DPAR = 10, 11, 12, 13, 14, 15
+N_PARAMS = 16
+# Indices into the kernel's state vector (beyond the 4 mechanical states).
+S_TM, S_RA, S_RAD, S_RPOS, S_SPOS = 4, 5, 6, 7, 8
+N_STATE = 9
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    """Sensor resolution and noise of the simulated rig."""
+
+    encoder_counts_per_rev: int = 131072  # 17-bit absolute encoder
+    velocity_noise_sd: float = 0.002  # rad/s, the drive's velocity estimate
+    torque_noise_sd: float = 0.02  # N·m, column torque sensor
+    torque_resolution: float = 0.001  # N·m per LSB
+    glove_rate_hz: float = 100.0
+    glove_noise_sd_n: float = 0.8  # N per hand
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    fs_hz: float = 1000.0
+    wheel_inertia_kgm2: float = 0.3  # physical; the loop renders Table 1's b and k
+    sensors: SensorSpec = field(default_factory=SensorSpec)
+    mechanisms: Mechanisms = field(default_factory=Mechanisms)
+    grip_corner_hz: float = 0.15  # bandwidth of the slow grip-force fluctuation
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+OUTPUTS = (
+    "wheel_angle_rad",
+    "wheel_velocity_rad_s",
+    "driver_torque_Nm",
+    "motor_command_Nm",
+    "motor_torque_Nm",
+)
+
+
+def discretise(I_w: float, arm, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact ZOH discretisation of the wheel–contact–arm system; inputs [T_m, T_hand, T_wheel]."""
+    kc, bc, Ii, bi, ki = arm.k_c, arm.b_c, arm.I_i, arm.b_i, arm.k_i
+    A = np.array(
+        [
+            [0.0, 1.0, 0.0, 0.0],
+            [-kc / I_w, -bc / I_w, kc / I_w, bc / I_w],
+            [0.0, 0.0, 0.0, 1.0],
+            [kc / Ii, bc / Ii, -(kc + ki) / Ii, -(bc + bi) / Ii],
+        ]
+    )
+    B = np.array(
+        [
+            [0.0, 0.0, 0.0],
+            [1.0 / I_w, 0.0, 1.0 / I_w],
+            [0.0, 0.0, 0.0],
+            [0.0, 1.0 / Ii, 0.0],
+        ]
+    )
+    M = np.zeros((7, 7))
+    M[:4, :4] = A * dt
+    M[:4, 4:] = B * dt
+    E = expm(M)
+    return E[:4, :4].copy(), E[:4, 4:].copy()
+
+
+@njit(cache=True)
+def _measure(x, st, p, ring_s, vel_noise_k, td_noise_k):
+    """(angle, velocity, driver torque) as the sensors report them for the current state."""
+    q = p[P_QANG]
+    ang = np.round(x[0] / q) * q if q > 0.0 else x[0]
+    vel = x[1] + vel_noise_k
+    if ring_s.shape[0] > 0:
+        td = ring_s[int(st[S_SPOS])]
+    else:
+        td = p[P_KC] * (x[0] - x[2]) + p[P_BC] * (x[1] - x[3])
+    td = td + td_noise_k
+    r = p[P_TRES]
+    if r > 0.0:
+        td = np.round(td / r) * r
+    return ang, vel, td
+
+
+@njit(cache=True)
+def _advance(
+    x,
+    st,
+    p,
+    Ad,
+    Bd,
+    ring_r,
+    ring_s,
+    tp,
+    cmd_ext,
+    internal,
+    hand_ext,
+    vel_noise,
+    td_noise,
+    dpar,
+    out,
+    i0,
+    n,
+):
+    """Advance n samples from noise index i0; write outputs (len(OUTPUTS) rows) at [:, 0..n)."""
+    u = np.empty(3)
+    xn = np.empty(4)
+    for j in range(n):
+        k = i0 + j
+        ang, vel, tdm = _measure(x, st, p, ring_s, vel_noise[k], td_noise[k])
+        # What the drive reports as torque actual at this cycle: last cycle's applied torque.
+        tm_reported = st[S_TM]
+        if internal:
+            cmd = render_torque(tp[j], ang, vel, p[P_KSW], p[P_BSW])
+        else:
+            cmd = cmd_ext[j]
+        st[S_TM] += p[P_ACT_ALPHA] * (cmd - st[S_TM])
+        th, om, thh, omh = x[0], x[1], x[2], x[3]
+        contact = p[P_KC] * (th - thh) + p[P_BC] * (om - omh)
+        # Torques of added mechanisms, held over the sample.
+        h = hand_ext[k]
+        w = 0.0
+        if p[P_K3] != 0.0:
+            h -= p[P_K3] * thh * thh * thh
+        if p[P_HAS_DPAR] != 0.0:
+            dcon = dpar[k, 3] * (th - thh) + dpar[k, 2] * (om - omh)
+            h += dcon - dpar[k, 0] * omh - dpar[k, 1] * thh
+            w -= dcon
+            contact += dcon
+        if p[P_COUL] != 0.0:
+            w -= p[P_COUL] * np.tanh(om / p[P_COUL_EPS])
+        if p[P_RKP] != 0.0 or p[P_RKV] != 0.0:
+            drive = p[P_RKP] * thh + p[P_RKV] * omh
+            nr = ring_r.shape[0]
+            if nr > 0:
+                pos = int(st[S_RPOS])
+                delayed = ring_r[pos]
+                ring_r[pos] = drive
+                st[S_RPOS] = (pos + 1) % nr
+            else:
+                delayed = drive
+            # Activation dynamics: 2nd-order low-pass, semi-implicit Euler.
+            wa, za, dt = p[P_RW], p[P_RZ], p[P_DT]
+            st[S_RAD] += dt * (wa * wa * (-delayed - st[S_RA]) - 2.0 * za * wa * st[S_RAD])
+            st[S_RA] += dt * st[S_RAD]
+            h += st[S_RA]
+        ns = ring_s.shape[0]
+        if ns > 0:
+            pos = int(st[S_SPOS])
+            ring_s[pos] = contact
+            st[S_SPOS] = (pos + 1) % ns
+        u[0] = st[S_TM]
+        u[1] = h
+        u[2] = w
+        for a in range(4):
+            acc = 0.0
+            for b in range(4):
+                acc += Ad[a, b] * x[b]
+            for b in range(3):
+                acc += Bd[a, b] * u[b]
+            xn[a] = acc
+        for a in range(4):
+            x[a] = xn[a]
+        out[0, j] = ang
+        out[1, j] = vel
+        out[2, j] = tdm
+        out[3, j] = cmd
+        out[4, j] = tm_reported
+
+
+class NoiseBlocks:
+    """Seeded exogenous signals, produced in 1-second blocks with filter states carried over.
+
+    Drawing block by block makes the stream independent of how callers slice it.
+    """
+
+    def __init__(self, cfg: WorldConfig, behaviour: ConditionBehaviour, left_share: float, seed):
+        self.cfg, self.b, self.left_share = cfg, behaviour, left_share
+        self.rng = np.random.default_rng(seed)
+        self.block = int(round(cfg.fs_hz))
+        fs = cfg.fs_hz
+        self.a_rem = np.exp(-2 * np.pi * behaviour.remnant_corner_hz / fs)
+        self.a_grip = np.exp(-2 * np.pi * cfg.grip_corner_hz / fs)
+        self.zi_rem = np.zeros(1)
+        # Start the grip fluctuation in its stationary distribution.
+        self.zi_grip = np.array([self.rng.standard_normal() * self.a_grip])
+        self.glove_every = max(1, int(round(fs / cfg.sensors.glove_rate_hz)))
+        self.glove_phase = 0
+        self.glove_hold = None
+
+    def _ar1(self, a: float, e: np.ndarray, zi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # y[k] = a y[k−1] + sqrt(1−a²) e[k]: unit variance when stationary.
+        y, zf = lfilter([np.sqrt(1 - a * a)], [1.0, -a], e, zi=zi)
+        return y, zf
+
+    def next_block(self) -> dict[str, np.ndarray]:
+        n, s, b = self.block, self.cfg.sensors, self.b
+        e = self.rng.standard_normal((5, n))
+        rem, self.zi_rem = self._ar1(self.a_rem, e[0], self.zi_rem)
+        g, self.zi_grip = self._ar1(self.a_grip, e[1], self.zi_grip)
+        grip_true = np.maximum(b.grip_mean_n + b.grip_sd_n * g, 0.0)
+        # The glove unit samples both hands at its own rate; the loop holds the latest frame.
+        left = grip_true * self.left_share + s.glove_noise_sd_n * e[2]
+        right = grip_true * (1 - self.left_share) + s.glove_noise_sd_n * e[3]
+        idx = np.arange(n) + self.glove_phase
+        frame_start = (idx % self.glove_every) == 0
+        hold_left, hold_right = np.empty(n), np.empty(n)
+        last = self.glove_hold if self.glove_hold is not None else (left[0], right[0])
+        starts = np.flatnonzero(frame_start)
+        sel = np.maximum.accumulate(np.where(frame_start, np.arange(n), -1))
+        has = sel >= 0
+        hold_left[has], hold_right[has] = left[sel[has]], right[sel[has]]
+        hold_left[~has], hold_right[~has] = last
+        if len(starts):
+            self.glove_hold = (hold_left[-1], hold_right[-1])
+        self.glove_phase = (self.glove_phase + n) % self.glove_every
+        return {
+            "remnant_Nm": b.remnant_sd_nm * rem,
+            "velocity_noise": s.velocity_noise_sd * e[4],
+            "torque_noise": s.torque_noise_sd * self.rng.standard_normal(n),
+            "grip_true_N": grip_true,
+            "grip_force_left_N": np.maximum(hold_left, 0.0),
+            "grip_force_right_N": np.maximum(hold_right, 0.0),
+        }
+
+
+class World:
+    """Wheel + simulated driver + sensors for one trial at a time.
+
+    ``run(tp)`` advances a block with the loop's rendering computed inside (batch);
+    ``read()``/``step(cmd)`` advance one sample with the command from outside (live).
+    """
+
+    def __init__(self, cfg: WorldConfig | None = None, wheel: VirtualWheel | None = None):
+        self.cfg = cfg or WorldConfig()
+        self.wheel = wheel or VirtualWheel()
+        self._trial = False
+
+    # -- trial set-up -------------------------------------------------------------------
+    def begin_trial(self, behaviour: ConditionBehaviour, left_share: float, seed) -> None:
+        cfg, s, m = self.cfg, self.cfg.sensors, self.cfg.mechanisms
+        self.behaviour = behaviour
+        dt = 1.0 / cfg.fs_hz
+        self.Ad, self.Bd = discretise(cfg.wheel_inertia_kgm2, behaviour.arm, dt)
+        p = np.zeros(N_PARAMS)
+        p[P_KSW] = self.wheel.stiffness_nm_per_rad
+        p[P_BSW] = self.wheel.damping_nms_per_rad
+        p[P_QANG] = 2 * np.pi / s.encoder_counts_per_rev if s.encoder_counts_per_rev else 0.0
+        p[P_TRES] = s.torque_resolution
+        p[P_KC], p[P_BC] = behaviour.arm.k_c, behaviour.arm.b_c
+        p[P_DT] = dt
+        m.configure(p, behaviour, cfg.fs_hz)
+        self.p = p
+        self.ring_r = np.zeros(m.reflex_delay_samples(cfg.fs_hz))
+        self.ring_s = np.zeros(m.sensor_delay_samples(cfg.fs_hz))
+        self.x = np.zeros(4)
+        self.st = np.zeros(N_STATE)
+        self.noise = NoiseBlocks(cfg, behaviour, left_share, seed)
+        self._blk: dict[str, np.ndarray] | None = None
+        self._dpar = np.zeros((0, 4))
+        self._k = 0  # index within the current noise block
+        self._n = 0  # samples advanced in this trial
+        self._out1 = np.zeros((len(OUTPUTS), 1))
+        self._cmd1 = np.zeros(1)
+        self._trial = True
+
+    def _ensure_block(self) -> None:
+        if self._blk is None or self._k >= self.noise.block:
+            self._blk = self.noise.next_block()
+            self._k = 0
+            dp = self.cfg.mechanisms.parameter_deltas(self._blk, self.behaviour)
+            self._dpar = dp if dp is not None else np.zeros((0, 4))
+            self.p[P_HAS_DPAR] = 1.0 if dp is not None else 0.0
+
+    # -- batch --------------------------------------------------------------------------
+    def run(self, tp: np.ndarray) -> dict[str, np.ndarray]:
+        """Advance len(tp) samples, rendering Table 1 inside the loop; returns all channels."""
+        if not self._trial:
+            raise RuntimeError("World.run before begin_trial")
+        tp = np.ascontiguousarray(tp, dtype=float)
+        n = len(tp)
+        out = np.empty((len(OUTPUTS), n))
+        extra = {k: np.empty(n) for k in ("grip_force_left_N", "grip_force_right_N", "grip_true_N")}
+        done = 0
+        while done < n:
+            self._ensure_block()
+            m = min(n - done, self.noise.block - self._k)
+            b = self._blk
+            _advance(
+                self.x,
+                self.st,
+                self.p,
+                self.Ad,
+                self.Bd,
+                self.ring_r,
+                self.ring_s,
+                tp[done : done + m],
+                self._cmd1,
+                True,
+                b["remnant_Nm"],
+                b["velocity_noise"],
+                b["torque_noise"],
+                self._dpar,
+                out[:, done : done + m],
+                self._k,
+                m,
+            )
+            for key in extra:
+                extra[key][done : done + m] = b[key][self._k : self._k + m]
+            self._k += m
+            done += m
+        self._n += n
+        res = {name: out[i] for i, name in enumerate(OUTPUTS)}
+        res.update(extra)
+        return res
+
+    # -- live, one sample at a time --------------------------------------------------------
+    def read(self) -> dict[str, float]:
+        """What the sensors report now (before the next step)."""
+        self._ensure_block()
+        b, k = self._blk, self._k
+        ang, vel, td = _measure(
+            self.x, self.st, self.p, self.ring_s, b["velocity_noise"][k], b["torque_noise"][k]
+        )
+        return {
+            "wheel_angle_rad": ang,
+            "wheel_velocity_rad_s": vel,
+            "driver_torque_Nm": td,
+            "motor_torque_Nm": self.st[S_TM],
+            "grip_force_left_N": b["grip_force_left_N"][k],
+            "grip_force_right_N": b["grip_force_right_N"][k],
+            "grip_true_N": b["grip_true_N"][k],
+        }
+
+    def step(self, motor_command_nm: float) -> None:
+        """Apply one sample of motor command (N·m) and advance one sample."""
+        self._ensure_block()
+        b = self._blk
+        self._cmd1[0] = motor_command_nm
+        _advance(
+            self.x,
+            self.st,
+            self.p,
+            self.Ad,
+            self.Bd,
+            self.ring_r,
+            self.ring_s,
+            self._cmd1,
+            self._cmd1,
+            False,
+            b["remnant_Nm"],
+            b["velocity_noise"],
+            b["torque_noise"],
+            self._dpar,
+            self._out1,
+            self._k,
+            1,
+        )
+        self._k += 1
+        self._n += 1
+
+    @property
+    def samples_done(self) -> int:
+        return self._n

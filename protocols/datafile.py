@@ -1,0 +1,531 @@
+"""Session files: one HDF5 file per subject session. Layout in ``docs/data-format.md``.
+
+:class:`SessionWriter` is an engine subscriber. While a trial runs the file is in SWMR mode
+(single writer, multiple readers): another process can read it, and a writer killed at any
+moment leaves a readable file holding every sample up to the last flush, with the trial still
+marked ``incomplete``. Samples are flushed at least every ``flush_interval_s`` of wall time.
+Nothing is ever overwritten: a redo is a new group; the old one is only marked superseded.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from contextlib import contextmanager
+from datetime import UTC, datetime
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from protocols import events as ev
+from protocols.perturbation import PerturbationDesign
+from protocols.records import (
+    STATUS_COMPLETE,
+    STATUS_INCOMPLETE,
+    STATUS_SUPERSEDED,
+    TrialRecord,
+)
+
+FORMAT = "steerlab-session"
+FORMAT_VERSION = 1
+
+UNITS = {
+    "time_s": "s",
+    "host_time_s": "s",
+    "perturbation_torque_Nm": "N·m",
+    "driver_torque_Nm": "N·m",
+    "wheel_angle_rad": "rad",
+    "wheel_velocity_rad_s": "rad/s",
+    "motor_command_Nm": "N·m",
+    "motor_torque_Nm": "N·m",
+    "grip_force_N": "N",
+    "grip_force_left_N": "N",
+    "grip_force_right_N": "N",
+}
+SIGN_CONVENTIONS = (
+    "wheel_angle_rad: positive counter-clockwise seen by the driver; "
+    "perturbation_torque_Nm and motor_*_Nm: torque on the wheel, positive towards positive angle; "
+    "driver_torque_Nm: the torque the wheel exerts on the hands (S(Tp,θ)/S(Tp,Td) > 0 at low "
+    "frequency); grip_force_N: total of both hands."
+)
+MARK_DTYPE = np.dtype([("sample", "<i8"), ("kind", "S16"), ("detail", "S240")])
+
+
+class DataFileError(ValueError):
+    """A session file that cannot be read or written as asked; the message names the file."""
+
+
+def software_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("steerlab")
+    except Exception:
+        return "0+unknown"
+
+
+def _now() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def _set_attrs(obj, attrs: dict) -> None:
+    for k, v in attrs.items():
+        if v is None:
+            continue
+        if isinstance(v, dict | list | tuple):
+            obj.attrs[k] = json.dumps(v)
+        else:
+            obj.attrs[k] = v
+
+
+class SessionWriter:
+    """Writes the engine's events into one session file."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        dtype: str = "f4",
+        flush_interval_s: float = 0.5,
+        chunk_samples: int = 8192,
+        extra_attributes: dict | None = None,
+        clock=time.monotonic,
+    ) -> None:
+        self.path = Path(path)
+        self.dtype = dtype
+        self.flush_interval_s = flush_interval_s
+        self.chunk_samples = chunk_samples
+        self.extra_attributes = extra_attributes or {}
+        self.clock = clock
+        self.f: h5py.File | None = None
+        self.recovered_from: Path | None = None
+        self._key: str | None = None
+        self._buf: dict[str, list[np.ndarray]] = {}
+        self._marks: list[tuple] = []
+        self._buffered = 0
+        self._written = 0
+        self._last_flush = clock()
+
+    # -- file handling --------------------------------------------------------------------------
+    def _open(self) -> h5py.File:
+        if self.f is None:
+            try:
+                self.f = h5py.File(self.path, "a", libver="latest")
+            except OSError as e:
+                if "already open for write" not in str(e) or not self.path.exists():
+                    raise DataFileError(f"{self.path}: cannot open for writing: {e}") from None
+                # A writer died in SWMR mode (killed, power cut): the superblock still says
+                # "open for writing". Recover into a fresh copy; the original stays as a backup.
+                self.recovered_from = recover_crashed_file(self.path)
+                self.f = h5py.File(self.path, "a", libver="latest")
+        return self.f
+
+    def _reopen_plain(self) -> h5py.File:
+        # Attributes and new groups cannot be written in SWMR mode: close and reopen.
+        if self.f is not None and self.f.swmr_mode:
+            self.f.close()
+            self.f = None
+        return self._open()
+
+    def close(self) -> None:
+        if self.f is not None:
+            self.f.close()
+            self.f = None
+
+    # -- events -----------------------------------------------------------------------------------
+    def __call__(self, event: object) -> None:
+        match event:
+            case ev.SessionStarted():
+                self._session_started(event)
+            case ev.TrialStarted():
+                self._trial_started(event)
+            case ev.SamplesAcquired():
+                self._samples(event)
+            case ev.TrialMark():
+                self._marks.append(
+                    (event.sample, event.kind.encode()[:16], event.detail.encode()[:240])
+                )
+            case ev.TrialEnded():
+                self._trial_ended(event)
+            case ev.TrialSuperseded():
+                self._superseded(event)
+            case ev.SessionEnded():
+                self.close()
+
+    def _session_started(self, e: ev.SessionStarted) -> None:
+        f = self._reopen_plain()
+        if f.attrs.get("format") is None:
+            _set_attrs(
+                f,
+                {
+                    "format": FORMAT,
+                    "format_version": FORMAT_VERSION,
+                    "software_version": software_version(),
+                    "created_utc": _now(),
+                    **e.attributes,
+                    "protocol_toml": e.protocol_text,
+                    "perturbation_design": e.design_json,
+                    "units": UNITS,
+                    "sign_conventions": SIGN_CONVENTIONS,
+                    **self.extra_attributes,
+                },
+            )
+        else:
+            if str(f.attrs.get("subject")) != e.subject:
+                raise DataFileError(
+                    f"{self.path}: holds subject {f.attrs.get('subject')!r}, not {e.subject!r}"
+                )
+            if str(f.attrs.get("protocol_toml", "")) != e.protocol_text:
+                raise DataFileError(
+                    f"{self.path}: was recorded with a different protocol; resume with the same "
+                    "protocol file, or start a new session file"
+                )
+            f.attrs["resumed_utc"] = _now()
+        f.require_group("trials")
+        f.flush()
+
+    def _trial_started(self, e: ev.TrialStarted) -> None:
+        f = self._reopen_plain()
+        trials = f.require_group("trials")
+        if e.key in trials:
+            raise DataFileError(
+                f"{self.path}: trial group {e.key!r} exists already; not overwriting"
+            )
+        g = trials.create_group(e.key)
+        design = f.attrs.get("perturbation_design")
+        _set_attrs(
+            g,
+            {
+                **e.attributes,
+                "status": STATUS_INCOMPLETE,
+                "n_planned": e.n_planned,
+                "started_utc": _now(),
+                "perturbation_design": design,
+                "units": UNITS,
+                "sign_conventions": SIGN_CONVENTIONS,
+                "software_version": software_version(),
+            },
+        )
+        f.flush()
+        self._key = e.key
+        self._buf, self._marks, self._buffered, self._written = {}, [], 0, 0
+        self._last_flush = self.clock()
+
+    def _create_datasets(self, channels: dict[str, np.ndarray]) -> None:
+        g = self.f["trials"][self._key]
+        for name in channels:
+            dt = "f8" if name in ("time_s", "host_time_s") else self.dtype
+            d = g.create_dataset(
+                name, shape=(0,), maxshape=(None,), dtype=dt, chunks=(self.chunk_samples,)
+            )
+            d.attrs["units"] = UNITS.get(name, "")
+        g.create_dataset("marks", shape=(0,), maxshape=(None,), dtype=MARK_DTYPE, chunks=(64,))
+        self.f.flush()
+        self.f.swmr_mode = True
+
+    def _samples(self, e: ev.SamplesAcquired) -> None:
+        if e.key != self._key:
+            raise DataFileError(f"{self.path}: samples for {e.key!r} while writing {self._key!r}")
+        if not self._buf:
+            self._create_datasets(e.channels)
+            self._buf = {k: [] for k in e.channels}
+        if e.channels.keys() != self._buf.keys():
+            raise DataFileError(f"{self.path}: trial {e.key}: channels changed within the trial")
+        for k, v in e.channels.items():
+            self._buf[k].append(np.asarray(v))
+        self._buffered += e.n
+        now = self.clock()
+        if self._buffered >= self.chunk_samples or now - self._last_flush >= self.flush_interval_s:
+            self._write_out()
+            if now - self._last_flush >= self.flush_interval_s:
+                self.f.flush()
+                self._last_flush = now
+
+    def _write_out(self) -> None:
+        if self._key is None or self.f is None:
+            return
+        g = self.f["trials"][self._key]
+        if self._buffered:
+            n0, n1 = self._written, self._written + self._buffered
+            for k, parts in self._buf.items():
+                d = g[k]
+                d.resize((n1,))
+                d[n0:n1] = np.concatenate(parts)
+                parts.clear()
+            self._written, self._buffered = n1, 0
+        if self._marks and "marks" in g:
+            d = g["marks"]
+            m0 = d.shape[0]
+            d.resize((m0 + len(self._marks),))
+            d[m0:] = np.array(self._marks, dtype=MARK_DTYPE)
+            self._marks = []
+
+    def _trial_ended(self, e: ev.TrialEnded) -> None:
+        if e.key != self._key:
+            raise DataFileError(f"{self.path}: end of {e.key!r} while writing {self._key!r}")
+        if e.reason:
+            self._marks.append((e.n_samples, b"abort", e.reason.encode()[:240]))
+        if not self._buf and self._marks:
+            # A trial aborted before its first sample still records why.
+            f = self._reopen_plain()
+            f["trials"][self._key].create_dataset(
+                "marks",
+                data=np.array(self._marks, dtype=MARK_DTYPE),
+                maxshape=(None,),
+                chunks=(64,),
+            )
+            self._marks = []
+        self._write_out()
+        self.f.flush()
+        f = self._reopen_plain()
+        g = f["trials"][self._key]
+        _set_attrs(
+            g,
+            {
+                "status": e.status,
+                "abort_reason": e.reason or "",
+                "n_samples": e.n_samples,
+                "ended_utc": _now(),
+                "loop_stats": e.stats,
+            },
+        )
+        f.flush()
+        self._key = None
+        self._buf = {}
+
+    def _superseded(self, e: ev.TrialSuperseded) -> None:
+        f = self._reopen_plain()
+        g = f["trials"].get(e.key)
+        if g is None:
+            raise DataFileError(f"{self.path}: no trial {e.key!r} to mark superseded")
+        g.attrs["status"] = STATUS_SUPERSEDED
+        g.attrs["superseded_reason"] = e.reason
+        g.attrs["superseded_utc"] = _now()
+        f.flush()
+
+
+def recover_crashed_file(path: Path) -> Path:
+    """Make a session file left by a killed SWMR writer writable again, without changing a sample.
+
+    The file is read (read-only works), copied object by object into a new file, the copy is
+    checked sample for sample against the original, the original is kept beside it as
+    ``NAME.crashed-<UTC>.h5.bak``, and the copy takes the original's name. Returns the backup.
+    """
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    tmp = path.with_name(path.name + ".recovering")
+    backup = path.with_name(f"{path.stem}.crashed-{stamp}.h5.bak")
+    try:
+        with (
+            h5py.File(path, "r", libver="latest", swmr=True) as src,
+            h5py.File(tmp, "w", libver="latest") as dst,
+        ):
+            for k, v in src.attrs.items():
+                dst.attrs[k] = v
+            for name in src:
+                src.copy(src[name], dst, name)
+            dst.attrs["recovered_utc"] = _now()
+            dst.attrs["recovered_from"] = backup.name
+        with h5py.File(path, "r", libver="latest", swmr=True) as a, h5py.File(tmp, "r") as b:
+
+            def same(name, obj):
+                if isinstance(obj, h5py.Dataset) and not np.array_equal(obj[()], b[name][()]):
+                    raise DataFileError(f"{path}: recovery copy differs in {name}; original kept")
+
+            a.visititems(same)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise DataFileError(
+            f"{path}: left open by a writer that died, and cannot be recovered: {e}"
+        ) from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    os.replace(path, backup)
+    os.replace(tmp, path)
+    return backup
+
+
+# -- reading ---------------------------------------------------------------------------------------
+def _open_for_reading(path: Path) -> h5py.File:
+    if not path.exists():
+        raise DataFileError(f"{path}: no such file")
+    try:
+        return h5py.File(path, "r", libver="latest", swmr=True)
+    except OSError as e:
+        msg = str(e)
+        hint = "truncated or damaged" if "truncat" in msg or "signature" in msg else "unreadable"
+        raise DataFileError(f"{path}: not a readable HDF5 file ({hint}: {msg})") from None
+
+
+@contextmanager
+def _damage_is_an_error(path: Path):
+    """h5py reports a damaged file late (reading an attribute, a chunk): one clear message."""
+    try:
+        yield
+    except DataFileError:
+        raise
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError) as e:
+        raise DataFileError(
+            f"{path}: damaged or truncated session file ({type(e).__name__}: {e})"
+        ) from None
+
+
+def _attr(obj, key, default=None):
+    v = obj.attrs.get(key, default)
+    if isinstance(v, bytes):
+        v = v.decode()
+    if isinstance(v, np.generic):
+        v = v.item()
+    return v
+
+
+def _json_attr(obj, key):
+    v = _attr(obj, key)
+    if v is None or v == "":
+        return None
+    try:
+        return json.loads(v)
+    except (TypeError, json.JSONDecodeError):
+        return v
+
+
+class SessionFile:
+    """A session file's metadata and trials, read-only."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        with _damage_is_an_error(self.path), _open_for_reading(self.path) as f:
+            if _attr(f, "format") != FORMAT:
+                raise DataFileError(
+                    f"{self.path}: not a Steerlab session file (no format={FORMAT!r})"
+                )
+            self.attrs = {k: _attr(f, k) for k in f.attrs}
+            if "trials" not in f:
+                raise DataFileError(f"{self.path}: session file has no /trials group")
+            self.trial_keys = sorted(f["trials"].keys())
+            self.trial_attrs = {
+                k: {a: _attr(g, a) for a in g.attrs} for k, g in f["trials"].items()
+            }
+
+    @property
+    def subject(self) -> str:
+        return str(self.attrs.get("subject"))
+
+    def attempts(self) -> dict[int, list[tuple[int, str]]]:
+        """trial index → [(attempt, status)], for resuming a session."""
+        out: dict[int, list[tuple[int, str]]] = {}
+        for a in self.trial_attrs.values():
+            out.setdefault(int(a["trial_index"]), []).append(
+                (int(a.get("attempt", 1)), str(a["status"]))
+            )
+        return out
+
+    def records(self, *, statuses: set[str] | None = None) -> list[TrialRecord]:
+        """All trials as :class:`TrialRecord` (optionally only those with the given status)."""
+        out = []
+        with _damage_is_an_error(self.path), _open_for_reading(self.path) as f:
+            for key in self.trial_keys:
+                g = f["trials"][key]
+                status = str(_attr(g, "status"))
+                if statuses is not None and status not in statuses:
+                    continue
+                out.append(_record_from_group(self.path, key, g))
+        out.sort(key=lambda r: (r.trial_index or 0, int(r.attrs.get("attempt", 1))))
+        return out
+
+
+def _record_from_group(path: Path, key: str, g: h5py.Group) -> TrialRecord:
+    where = f"{path}:/trials/{key}"
+    attrs = {a: _attr(g, a) for a in g.attrs}
+    missing = [
+        c for c in ("subject", "condition", "repetition", "fs_hz", "status") if c not in attrs
+    ]
+    if missing:
+        raise DataFileError(f"{where}: missing attribute(s) {missing}")
+    data: dict[str, np.ndarray] = {}
+    for name, d in g.items():
+        if isinstance(d, h5py.Dataset) and name != "marks":
+            data[name] = np.asarray(d[()], dtype=float)
+    core = (
+        "time_s",
+        "perturbation_torque_Nm",
+        "driver_torque_Nm",
+        "wheel_angle_rad",
+        "grip_force_N",
+    )
+    n = min((len(data[c]) for c in core if c in data), default=0)
+    for c in core:
+        if c not in data:
+            if attrs["status"] == STATUS_COMPLETE:
+                raise DataFileError(f"{where}: missing dataset {c!r}")
+            data[c] = np.zeros(0)
+        data[c] = data[c][:n]  # a killed writer may have flushed channels unevenly
+    design = None
+    dj = _attr(g, "perturbation_design")
+    if dj:
+        try:
+            design = PerturbationDesign.from_json(dj)
+        except (KeyError, TypeError, ValueError) as e:
+            raise DataFileError(
+                f"{where}: unreadable perturbation_design attribute ({e})"
+            ) from None
+    marks = []
+    if "marks" in g:
+        for m in g["marks"][()]:
+            marks.append(
+                {
+                    "sample": int(m["sample"]),
+                    "kind": m["kind"].decode(),
+                    "detail": m["detail"].decode(),
+                }
+            )
+    attrs["marks"] = marks
+    fam = bool(attrs.get("familiarization", False))
+    return TrialRecord(
+        subject=str(attrs["subject"]),
+        condition=str(attrs["condition"]),
+        repetition=int(attrs["repetition"]),
+        familiarization=fam,
+        fs_hz=float(attrs["fs_hz"]),
+        time_s=data.pop("time_s"),
+        perturbation_torque_Nm=data.pop("perturbation_torque_Nm"),
+        driver_torque_Nm=data.pop("driver_torque_Nm"),
+        wheel_angle_rad=data.pop("wheel_angle_rad"),
+        grip_force_N=data.pop("grip_force_N"),
+        trial_index=int(attrs["trial_index"]) if attrs.get("trial_index") is not None else None,
+        status=str(attrs["status"]),
+        abort_reason=str(attrs.get("abort_reason") or "") or None,
+        measured_start=int(attrs["measured_start"])
+        if attrs.get("measured_start") is not None
+        else None,
+        measured_stop=int(attrs["measured_stop"])
+        if attrs.get("measured_stop") is not None
+        else None,
+        design=design,
+        boundary_deg=float(attrs["boundary_deg"])
+        if attrs.get("boundary_deg") is not None
+        else None,
+        extra={k: v[:n] for k, v in data.items()},
+        attrs=attrs,
+        source=where,
+    )
+
+
+def session_files(directory: str | Path) -> list[Path]:
+    d = Path(directory)
+    if not d.is_dir():
+        raise DataFileError(f"{d}: not a directory")
+    return sorted(p for p in d.glob("*.h5"))
+
+
+def load_study(directory: str | Path, statuses: set[str] | None = None) -> list[TrialRecord]:
+    """Every trial of every session file in a directory."""
+    files = session_files(directory)
+    if not files:
+        raise DataFileError(f"{directory}: no session files (*.h5)")
+    out = []
+    for p in files:
+        out.extend(SessionFile(p).records(statuses=statuses))
+    return out

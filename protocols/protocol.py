@@ -1,0 +1,268 @@
+"""The protocol: a TOML file a user edits, read into plain validated data.
+
+Every problem is reported as :class:`ProtocolError` naming the file and the field.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from protocols.perturbation import PerturbationSpec
+
+DEFAULT_PROTOCOL = "pronker2017.toml"
+
+
+class ProtocolError(ValueError):
+    """A protocol file that cannot be used; the message names the file and the field."""
+
+
+@dataclass(frozen=True)
+class VirtualWheel:
+    """The wheel's virtual dynamics (Table 1 of Pronker et al. 2017)."""
+
+    inertia_kgm2: float = 0.3
+    damping_nms_per_rad: float = 2.0
+    stiffness_nm_per_rad: float = 4.2
+
+
+@dataclass(frozen=True)
+class Condition:
+    name: str
+    boundary_deg: float  # lines at ±boundary_deg; inf: none; 0: on the centre line
+    instructions: str = ""
+
+
+@dataclass(frozen=True)
+class TrialTiming:
+    periods: int = 1
+    run_in_s: float = 5.0
+    fade_in_s: float = 1.0
+    fade_out_s: float = 1.0
+    familiarization_trials: int = 1
+    repetitions: int = 2
+    break_between_trials_s: float = 15.0
+    break_between_conditions_s: float = 60.0
+
+
+@dataclass(frozen=True)
+class Protocol:
+    name: str
+    conditions: tuple[Condition, ...]
+    trial: TrialTiming = field(default_factory=TrialTiming)
+    perturbation: PerturbationSpec = field(default_factory=PerturbationSpec)
+    wheel: VirtualWheel = field(default_factory=VirtualWheel)
+    loop_rate_hz: float = 1000.0
+    description: str = ""
+    source_text: str = ""  # the TOML as read, stored with every session
+    source_path: str = ""
+
+    @property
+    def condition_names(self) -> list[str]:
+        return [c.name for c in self.conditions]
+
+    def condition(self, name: str) -> Condition:
+        for c in self.conditions:
+            if c.name == name:
+                return c
+        raise ProtocolError(
+            f"{self.source_path or 'protocol'}: unknown condition {name!r}; "
+            f"the protocol defines {self.condition_names}"
+        )
+
+    @property
+    def trial_samples(self) -> int:
+        t = self.trial
+        secs = t.run_in_s + t.periods * self.perturbation.period_s + t.fade_out_s
+        return int(round(secs * self.loop_rate_hz))
+
+
+_TRIAL_KEYS = {
+    "periods": int,
+    "run_in_s": float,
+    "fade_in_s": float,
+    "fade_out_s": float,
+    "familiarization_trials": int,
+    "repetitions": int,
+    "break_between_trials_s": float,
+    "break_between_conditions_s": float,
+}
+_PERT_KEYS = {
+    "period_s": float,
+    "n_bands": int,
+    "first_bin": int,
+    "f_max_hz": float,
+    "full_power_max_hz": float,
+    "reduced_power_ratio": float,
+    "sd_nm": float,
+    "gap_bins": int,
+    "seed": int,
+}
+_WHEEL_KEYS = {
+    "inertia_kgm2": ("inertia_kgm2", float),
+    "damping_Nms_per_rad": ("damping_nms_per_rad", float),
+    "stiffness_Nm_per_rad": ("stiffness_nm_per_rad", float),
+}
+
+
+def _typed(where: str, key: str, value: Any, kind: type) -> Any:
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ProtocolError(f"{where}.{key}: expected a whole number, got {value!r}")
+        return value
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ProtocolError(f"{where}.{key}: expected a number, got {value!r}")
+        return float(value)
+    if not isinstance(value, kind):
+        raise ProtocolError(f"{where}.{key}: expected {kind.__name__}, got {value!r}")
+    return value
+
+
+def _section(doc: dict, name: str, keys: dict, file: str) -> dict:
+    raw = doc.get(name, {})
+    where = f"{file}: [{name}]"
+    if not isinstance(raw, dict):
+        raise ProtocolError(f"{where}: expected a table, got {raw!r}")
+    unknown = set(raw) - set(keys)
+    if unknown:
+        raise ProtocolError(f"{where}: unknown field(s) {sorted(unknown)}; known: {sorted(keys)}")
+    out = {}
+    for k, v in raw.items():
+        spec = keys[k]
+        attr, kind = spec if isinstance(spec, tuple) else (k, spec)
+        out[attr] = _typed(where, k, v, kind)
+    return out
+
+
+def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ProtocolError(f"{file}: not valid TOML: {e}") from None
+    known_top = {
+        "name",
+        "description",
+        "loop_rate_hz",
+        "trial",
+        "perturbation",
+        "wheel",
+        "conditions",
+    }
+    unknown = set(doc) - known_top
+    if unknown:
+        raise ProtocolError(
+            f"{file}: unknown field(s) {sorted(unknown)}; known: {sorted(known_top)}"
+        )
+
+    name = doc.get("name", Path(file).stem)
+    if not isinstance(name, str) or not name:
+        raise ProtocolError(f"{file}: name: expected a non-empty string, got {name!r}")
+    loop = _typed(file, "loop_rate_hz", doc.get("loop_rate_hz", 1000.0), float)
+    if not 100.0 <= loop <= 10000.0:
+        raise ProtocolError(f"{file}: loop_rate_hz: must be between 100 and 10000 Hz, got {loop}")
+
+    trial = TrialTiming(**_section(doc, "trial", _TRIAL_KEYS, file))
+    w = f"{file}: [trial]"
+    if trial.periods < 1:
+        raise ProtocolError(f"{w}.periods: must be ≥ 1 whole period, got {trial.periods}")
+    for key in (
+        "run_in_s",
+        "fade_in_s",
+        "fade_out_s",
+        "break_between_trials_s",
+        "break_between_conditions_s",
+    ):
+        v = getattr(trial, key)
+        if not (v >= 0 and math.isfinite(v)):
+            raise ProtocolError(f"{w}.{key}: must be a finite number ≥ 0 s, got {v}")
+    if trial.fade_in_s > trial.run_in_s:
+        raise ProtocolError(
+            f"{w}.fade_in_s: the fade-in ({trial.fade_in_s} s) must fit inside the run-in "
+            f"({trial.run_in_s} s)"
+        )
+    if trial.familiarization_trials < 0:
+        raise ProtocolError(
+            f"{w}.familiarization_trials: must be ≥ 0, got {trial.familiarization_trials}"
+        )
+    if trial.repetitions < 1:
+        raise ProtocolError(f"{w}.repetitions: must be ≥ 1, got {trial.repetitions}")
+
+    pert = PerturbationSpec(**_section(doc, "perturbation", _PERT_KEYS, file))
+    try:
+        pert.validate(where=f"{file}: [perturbation]")
+    except ValueError as e:
+        raise ProtocolError(str(e)) from None
+    n = pert.period_s * loop
+    if abs(n - round(n)) > 1e-9 * n:
+        raise ProtocolError(
+            f"{file}: [perturbation].period_s: {pert.period_s} s at loop_rate_hz {loop} is not a "
+            "whole number of samples"
+        )
+    if pert.f_max_hz >= loop / 2:
+        raise ProtocolError(
+            f"{file}: [perturbation].f_max_hz: {pert.f_max_hz} Hz must be below half the loop rate"
+        )
+
+    wheel = VirtualWheel(**_section(doc, "wheel", _WHEEL_KEYS, file))
+    for key, value in vars(wheel).items():
+        if not value >= 0:
+            raise ProtocolError(f"{file}: [wheel].{key}: must be ≥ 0, got {value}")
+
+    raw_conds = doc.get("conditions")
+    if not isinstance(raw_conds, list) or not raw_conds:
+        raise ProtocolError(f"{file}: [[conditions]]: at least one condition is required")
+    conds = []
+    for i, c in enumerate(raw_conds):
+        where = f"{file}: [[conditions]] #{i + 1}"
+        if not isinstance(c, dict):
+            raise ProtocolError(f"{where}: expected a table")
+        unknown = set(c) - {"name", "boundary_deg", "instructions"}
+        if unknown:
+            raise ProtocolError(f"{where}: unknown field(s) {sorted(unknown)}")
+        if "name" not in c or not isinstance(c["name"], str) or not c["name"].strip():
+            raise ProtocolError(f"{where}.name: required, a non-empty string")
+        if "boundary_deg" not in c:
+            raise ProtocolError(f"{where} ({c['name']}).boundary_deg: required (inf for none)")
+        bd = _typed(where, "boundary_deg", c["boundary_deg"], float)
+        if not bd >= 0:
+            raise ProtocolError(f"{where} ({c['name']}).boundary_deg: must be ≥ 0 or inf, got {bd}")
+        instr = c.get("instructions", "")
+        if not isinstance(instr, str):
+            raise ProtocolError(f"{where}.instructions: expected a string")
+        conds.append(Condition(c["name"].strip(), bd, instr))
+    names = [c.name for c in conds]
+    dup = {n for n in names if names.count(n) > 1}
+    if dup:
+        raise ProtocolError(f"{file}: [[conditions]]: duplicate condition name(s) {sorted(dup)}")
+
+    return Protocol(
+        name=name,
+        description=str(doc.get("description", "")),
+        conditions=tuple(conds),
+        trial=trial,
+        perturbation=pert,
+        wheel=wheel,
+        loop_rate_hz=loop,
+        source_text=text,
+        source_path=file,
+    )
+
+
+def load_protocol(path: str | Path | None = None) -> Protocol:
+    """Read a protocol file; None gives the default (the paper's) protocol."""
+    if path is None:
+        text = resources.files("protocols").joinpath(DEFAULT_PROTOCOL).read_text(encoding="utf-8")
+        return parse_protocol(text, DEFAULT_PROTOCOL)
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as e:
+        raise ProtocolError(f"{p}: cannot read protocol file: {e.strerror or e}") from None
+    except UnicodeDecodeError:
+        raise ProtocolError(f"{p}: not a text (UTF-8) file") from None
+    return parse_protocol(text, str(p))

@@ -1,0 +1,70 @@
+"""One recorded trial as plain data: what readers hand to the analysis.
+
+Sign conventions (where data leave Steerlab's files):
+- ``wheel_angle_rad``: wheel angle, positive counter-clockwise seen by the driver.
+- ``driver_torque_Nm``: the torque the wheel exerts on the hands (so that
+  S(Tp,θ)/S(Tp,Td) is positive at low frequency).
+- ``perturbation_torque_Nm``: the perturbation torque applied to the wheel, positive in the
+  direction of positive angle.
+- ``grip_force_N``: total grip force, both hands summed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from protocols.perturbation import PerturbationDesign
+
+CORE_CHANNELS = (
+    "time_s",
+    "perturbation_torque_Nm",
+    "driver_torque_Nm",
+    "wheel_angle_rad",
+    "grip_force_N",
+)
+
+STATUS_COMPLETE = "complete"
+STATUS_ABORTED = "aborted"
+STATUS_INCOMPLETE = "incomplete"  # still running, or the writer died mid-trial
+STATUS_SUPERSEDED = "superseded"  # a later attempt (redo) of the same trial replaced it
+
+
+@dataclass
+class TrialRecord:
+    subject: str
+    condition: str
+    repetition: int  # 0 for the familiarization trial, 1..n for measured repetitions
+    familiarization: bool
+    fs_hz: float
+    time_s: np.ndarray
+    perturbation_torque_Nm: np.ndarray
+    driver_torque_Nm: np.ndarray
+    wheel_angle_rad: np.ndarray
+    grip_force_N: np.ndarray
+    trial_index: int | None = None  # 1-based position in the session, when known
+    status: str = STATUS_COMPLETE
+    abort_reason: str | None = None
+    # First sample after the run-in, when the recorder knew it. None: unknown (imported data);
+    # the analysis then finds whole periods by itself.
+    measured_start: int | None = None
+    measured_stop: int | None = None  # one past the last measured sample
+    design: PerturbationDesign | None = None
+    boundary_deg: float | None = None
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+    attrs: dict = field(default_factory=dict)
+    source: str = ""  # where it came from, for messages: "file.h5:/trials/003_BT12_rep1"
+    dtypes: dict[str, str] = field(default_factory=dict)  # storage type per channel, if not f8
+
+    @property
+    def n_samples(self) -> int:
+        return len(self.time_s)
+
+    @property
+    def usable(self) -> bool:
+        return self.status == STATUS_COMPLETE and not self.familiarization
+
+    def label(self) -> str:
+        rep = "fam" if self.familiarization else f"rep{self.repetition}"
+        return f"{self.subject}_{self.condition}_{rep}"

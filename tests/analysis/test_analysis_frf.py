@@ -1,0 +1,205 @@
+"""Fourier coefficients, FRF, coherence, noise and group averages (analysis.frf)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from analysis.frf import (
+    frequency_response,
+    group_frequency_response,
+    trial_spectra,
+)
+from analysis.periods import select_periods
+from tests.analysis.synthetic_trials import ARM, admittance, closed_loop, default_design, make_trial
+
+
+def numpy_frf(records):
+    """The estimator written out plainly: FFT per period, sums over bins, periods, records."""
+    d = default_design()
+    num = np.zeros(31, complex)
+    den = np.zeros(31, complex)
+    pp = np.zeros(31)
+    tt = np.zeros(31)
+    for rec in records:
+        sel = select_periods(rec)
+        for k in range(sel.n_periods):
+            a = sel.start + k * sel.period_samples
+            b = a + sel.period_samples
+            tp = np.fft.fft(rec.perturbation_torque_Nm[a:b])[d.bins]
+            td = np.fft.fft(rec.driver_torque_Nm[a:b])[d.bins]
+            th = np.fft.fft(rec.wheel_angle_rad[a:b])[d.bins]
+            np.add.at(num, d.band_of_bin, np.conj(tp) * th)
+            np.add.at(den, d.band_of_bin, np.conj(tp) * td)
+            np.add.at(pp, d.band_of_bin, np.abs(tp) ** 2)
+            np.add.at(tt, d.band_of_bin, np.abs(th) ** 2)
+    return num / den, np.abs(num) / np.sqrt(pp * tt)
+
+
+def test_frf_and_coherence_equal_a_plain_numpy_computation():
+    recs = [
+        make_trial(fs_hz=200.0, run_in_s=3.0, n_periods=2, remnant_sd=0.4, seed=s, repetition=s)
+        for s in (1, 2)
+    ]
+    frf = frequency_response([trial_spectra(r) for r in recs])
+    H, coh = numpy_frf(recs)
+    np.testing.assert_allclose(frf.H, H, rtol=1e-10)
+    np.testing.assert_allclose(frf.coherence, coh, rtol=1e-10)
+    assert frf.n_averaged.tolist() == [2 * 2 * 2] * 31  # bins × periods × repetitions
+    assert frf.trials == ("S01_BT12_rep1", "S01_BT12_rep2")
+
+
+def test_noise_free_single_bin_bands_give_the_analytic_admittance():
+    d = default_design()
+    single = dataclasses.replace(d, band_of_bin=np.arange(len(d.bins)))
+    rec = make_trial(design=single, fs_hz=1000.0, run_in_s=2.0)
+    frf = frequency_response(trial_spectra(rec))
+    np.testing.assert_allclose(frf.frequencies_hz, d.frequencies_hz)
+    np.testing.assert_allclose(frf.H, admittance(ARM, d.frequencies_hz), rtol=1e-9)
+    np.testing.assert_allclose(frf.coherence, 1.0, rtol=1e-12)
+
+
+def test_noise_free_double_bands_mix_the_two_bins_as_the_estimator_says():
+    # For a noise-free loop the band estimate is Σ a_b² G_θ(f_b) / Σ a_b² G_Td(f_b): each bin's
+    # admittance weighted by its share of S(Tp,Td). Computed here from the closed loop.
+    d = default_design()
+    rec = make_trial(fs_hz=1000.0, run_in_s=2.0)
+    frf = frequency_response(trial_spectra(rec))
+    sys = closed_loop(ARM)
+    G = np.array(
+        [
+            sys.C @ np.linalg.solve(2j * np.pi * f * np.eye(4) - sys.A, sys.B[:, 0])
+            for f in d.frequencies_hz
+        ]
+    )
+    a2 = d.amplitudes_nm**2
+    num = np.bincount(d.band_of_bin, a2 * G[:, 0].real) + 1j * np.bincount(
+        d.band_of_bin, a2 * G[:, 0].imag
+    )
+    den = np.bincount(d.band_of_bin, a2 * G[:, 1].real) + 1j * np.bincount(
+        d.band_of_bin, a2 * G[:, 1].imag
+    )
+    np.testing.assert_allclose(frf.H, num / den, rtol=1e-9)
+    # … which the reported bin weights reproduce …
+    mixed = np.sum(frf.bin_weights * admittance(ARM, frf.bin_frequencies_hz), axis=1)
+    np.testing.assert_allclose(frf.H, mixed, rtol=1e-9)
+    # … and which is within 1 % of H at the band's mean frequency (the paper's reading).
+    np.testing.assert_allclose(frf.H, admittance(ARM, frf.frequencies_hz), rtol=1e-2)
+    assert frf.coherence.min() > 0.999
+
+
+def test_run_in_is_not_used():
+    clean = make_trial(fs_hz=200.0, run_in_s=4.0, transient=True)
+    dirty = make_trial(fs_hz=200.0, run_in_s=4.0, transient=True)
+    dirty.wheel_angle_rad[:800] += 5.0  # garbage during the run-in
+    dirty.driver_torque_Nm[:800] -= 50.0
+    a = frequency_response(trial_spectra(clean)).H
+    b = frequency_response(trial_spectra(dirty)).H
+    np.testing.assert_array_equal(a, b)
+
+
+def test_start_up_transient_is_gone_after_the_default_run_in():
+    rec = make_trial(fs_hz=1000.0, run_in_s=2.0, transient=True, known_start=False)
+    frf = frequency_response(trial_spectra(rec))
+    mixed = np.sum(frf.bin_weights * admittance(ARM, frf.bin_frequencies_hz), axis=1)
+    np.testing.assert_allclose(frf.H, mixed, rtol=2e-3)
+
+
+def test_imported_style_250_hz_off_period_start_without_design():
+    rec = make_trial(fs_hz=250.0, run_in_s=7.0, phase_s=17.3, known_start=False, with_design=False)
+    s = trial_spectra(rec)
+    assert s.excitation.origin == "detected"
+    frf = frequency_response(s)
+    mixed = np.sum(frf.bin_weights * admittance(ARM, frf.bin_frequencies_hz), axis=1)
+    np.testing.assert_allclose(frf.H, mixed, rtol=1e-9)
+
+
+def test_noise_levels_and_the_variance_of_h_are_calibrated():
+    # Over seeds and bands, the squared errors of Ĥ must add up to its predicted variances.
+    # (Ratio of sums, not mean of ratios: with 4 noise bins per band each variance estimate
+    # has 8 degrees of freedom, and E[1/v̂] > 1/v would inflate a mean of ratios by 8/6.)
+    err2, var = [], []
+    for seed in range(6):
+        rec = make_trial(
+            fs_hz=200.0, run_in_s=3.0, remnant_sd=0.4, theta_noise_sd=1e-4, td_noise_sd=0.02,
+            seed=seed,
+        )  # fmt: skip
+        frf = frequency_response(trial_spectra(rec))
+        truth = np.sum(frf.bin_weights * admittance(ARM, frf.bin_frequencies_hz), axis=1)
+        err2.append(np.abs(frf.H - truth) ** 2)
+        var.append(frf.H_variance)
+        assert np.all(frf.noise_theta_rad2 > 0) and np.all(frf.noise_td_Nm2 > 0)
+        assert np.all(frf.noise_theta_rad2 < frf.power_theta_rad2)
+    ratio = np.sum(err2) / np.sum(var)
+    assert 0.7 < ratio < 1.4, ratio
+
+
+def test_noise_free_data_have_no_noise():
+    frf = frequency_response(trial_spectra(make_trial(fs_hz=200.0, run_in_s=2.0)))
+    assert np.all(frf.noise_theta_rad2 < 1e-20 * frf.power_theta_rad2)
+
+
+def test_remnant_lowers_coherence_most_at_the_lowest_frequencies():
+    rec = make_trial(fs_hz=200.0, run_in_s=3.0, remnant_sd=1.0, seed=4)
+    coh = frequency_response(trial_spectra(rec)).coherence
+    assert np.all((coh > 0) & (coh <= 1))
+    assert coh[:4].mean() < np.median(coh)
+
+
+def test_spectra_at_other_bins_cannot_be_averaged():
+    a = trial_spectra(make_trial(fs_hz=200.0, run_in_s=2.0))
+    d = default_design()
+    other = dataclasses.replace(d, bins=d.bins + 1)
+    b = trial_spectra(make_trial(design=other, fs_hz=200.0, run_in_s=2.0, repetition=2))
+    with pytest.raises(ValueError, match="other bins"):
+        frequency_response([a, b])
+
+
+def test_non_finite_samples_in_the_analysed_periods_are_an_error():
+    rec = make_trial(fs_hz=200.0, run_in_s=2.0)
+    rec.wheel_angle_rad[1000] = np.nan
+    with pytest.raises(ValueError, match="wheel_angle_rad has non-finite"):
+        trial_spectra(rec)
+
+
+def test_to_dict_has_units_in_its_keys():
+    d = frequency_response(trial_spectra(make_trial(fs_hz=200.0, run_in_s=2.0))).to_dict()
+    assert {"frequencies_Hz", "magnitude_rad_per_Nm", "phase_deg", "noise_theta_rad2"} <= set(d)
+    assert len(d["frequencies_Hz"]) == 31
+
+
+def _subject_frfs(scales):
+    out = []
+    for i, k in enumerate(scales):
+        arm = dict(ARM, k_i=ARM["k_i"] * k, b_c=ARM["b_c"] / k)
+        rec = make_trial(arm, fs_hz=200.0, run_in_s=2.0, subject=f"S{i}")
+        out.append(frequency_response(trial_spectra(rec)))
+    return out
+
+
+def test_group_mean_and_intervals():
+    frfs = _subject_frfs([0.7, 0.9, 1.0, 1.2, 1.5])
+    g = group_frequency_response(frfs, subjects=[f"S{i}" for i in range(5)])
+    Hs = np.array([f.H for f in frfs])
+    np.testing.assert_allclose(g.H, Hs.mean(0))
+    t = stats.t.ppf(0.975, 4)
+    half = t * Hs.real.std(0, ddof=1) / np.sqrt(5)
+    np.testing.assert_allclose(g.real_ci[0], Hs.real.mean(0) - half)
+    np.testing.assert_allclose(
+        g.imag_ci[1], Hs.imag.mean(0) + t * Hs.imag.std(0, ddof=1) / np.sqrt(5)
+    )
+    lm = np.log(np.abs(Hs))
+    np.testing.assert_allclose(
+        g.magnitude_ci[1], np.exp(lm.mean(0) + t * lm.std(0, ddof=1) / np.sqrt(5))
+    )
+    assert np.all(g.magnitude_ci[0] < g.magnitude) and np.all(g.magnitude < g.magnitude_ci[1])
+    assert np.all(g.phase_ci_deg[0] < g.phase_deg) and np.all(g.phase_deg < g.phase_ci_deg[1])
+    np.testing.assert_allclose(g.H_variance, np.sum(np.abs(Hs - g.H) ** 2, 0) / 20)
+    assert g.to_dict()["n_subjects"] == 5
+
+
+def test_group_of_one_subject_has_no_interval():
+    g = group_frequency_response(_subject_frfs([1.0]))
+    np.testing.assert_allclose(g.H, g.subject_H[0])
+    assert np.all(np.isnan(g.magnitude_ci[0])) and np.all(np.isnan(g.H_variance))

@@ -1,0 +1,34 @@
+"""Shared fixtures. Qt runs offscreen in every test (no display on CI)."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from protocols.protocol import load_protocol, parse_protocol  # noqa: E402
+from tests.helpers import fast_protocol_text  # noqa: E402
+
+
+@pytest.fixture
+def default_protocol():
+    return load_protocol()
+
+
+@pytest.fixture
+def fast_protocol():
+    return parse_protocol(fast_protocol_text(), "fast.toml")
+
+
+@pytest.fixture
+def fast_protocol_file(tmp_path):
+    p = tmp_path / "fast.toml"
+    p.write_text(fast_protocol_text())
+    return p
