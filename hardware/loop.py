@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator, Sequence
 import numpy as np
 
 from hardware.interfaces import Display, GloveUnit, TorqueSensor, WheelDrive
-from hardware.rendering import render_torque
+from hardware.safety import SafetyLimits, loop_command
 from protocols.engine import LoopControl, TrialFault
 from protocols.session import TrialSetup
 
@@ -47,7 +47,9 @@ class DeviceLoop:
         block_s: float = 0.05,
         trial_hooks: Sequence[Callable[[TrialSetup], None]] = (),
         clock: Callable[[], float] = time.perf_counter,
+        safety: SafetyLimits | None = None,
     ) -> None:
+        self.safety = safety or SafetyLimits()
         self.drive, self.sensor, self.glove, self.display = drive, torque_sensor, glove, display
         self.realtime = realtime
         self.block_s = block_s
@@ -73,6 +75,8 @@ class DeviceLoop:
         blk = max(1, int(round(self.block_s * fs)))
         tp_all = setup.perturbation_nm
         k_sw, b_sw = setup.wheel_k, setup.wheel_b
+        limits = self.safety.kernel_vector(fs)
+        cmd = 0.0
         late = 0
         errors: list[float] = []
         self._stats = {}
@@ -101,7 +105,7 @@ class DeviceLoop:
                     if g is None:
                         raise TrialFault("no grip-force reading from the glove unit")
                     tp = tp_all[k + j]
-                    cmd = render_torque(tp, r.angle_rad, r.velocity_rad_s, k_sw, b_sw)
+                    cmd = loop_command(tp, r.angle_rad, r.velocity_rad_s, cmd, k_sw, b_sw, limits)
                     self.drive.set_torque(cmd)
                     self.drive.sync()
                     buf["time_s"][j] = (k + j) / fs

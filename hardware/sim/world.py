@@ -12,9 +12,9 @@ time-varying parameters); T_wheel_extra carries wheel-side mechanisms (dry frict
 
 The linear part is discretised exactly (zero-order hold, matrix exponential); the extra
 torques are held over one sample. One compiled kernel, ``_advance``, runs both a whole block
-(batch: the loop's rendering computed inside) and a single sample (live: the command comes
-from outside, through the drive interface); both draw noise from the same seeded 1-second
-blocks, so the two paths give the same signals.
+(batch: the loop's command, rendering and safety limits, computed inside) and a single sample
+(live: the command comes from outside, through the drive interface); both draw noise from the
+same seeded 1-second blocks, so the two paths give the same signals.
 """
 
 from __future__ import annotations
@@ -26,9 +26,10 @@ from numba import njit
 from scipy.linalg import expm
 from scipy.signal import lfilter
 
-from hardware.rendering import VirtualWheel, render_torque
+from hardware.safety import SafetyLimits, loop_command
 from hardware.sim.mechanisms import Mechanisms
 from hardware.sim.physiology import ConditionBehaviour
+from protocols.protocol import VirtualWheel
 
 # Indices into the kernel's parameter vector.
 P_KSW, P_BSW, P_QANG, P_TRES, P_KC, P_BC = 0, 1, 2, 3, 4, 5
@@ -36,8 +37,8 @@ P_K3, P_COUL, P_COUL_EPS, P_ACT_ALPHA = 6, 7, 8, 9
 P_RKP, P_RKV, P_RW, P_RZ, P_DT, P_HAS_DPAR = 10, 11, 12, 13, 14, 15
 N_PARAMS = 16
 # Indices into the kernel's state vector (beyond the 4 mechanical states).
-S_TM, S_RA, S_RAD, S_RPOS, S_SPOS = 4, 5, 6, 7, 8
-N_STATE = 9
+S_TM, S_RA, S_RAD, S_RPOS, S_SPOS, S_CMD = 4, 5, 6, 7, 8, 9
+N_STATE = 10
 
 
 @dataclass(frozen=True)
@@ -135,6 +136,7 @@ def _advance(
     out,
     i0,
     n,
+    safety,
 ):
     """Advance n samples from noise index i0; write outputs (len(OUTPUTS) rows) at [:, 0..n)."""
     u = np.empty(3)
@@ -145,9 +147,10 @@ def _advance(
         # What the drive reports as torque actual at this cycle: last cycle's applied torque.
         tm_reported = st[S_TM]
         if internal:
-            cmd = render_torque(tp[j], ang, vel, p[P_KSW], p[P_BSW])
+            cmd = loop_command(tp[j], ang, vel, st[S_CMD], p[P_KSW], p[P_BSW], safety)
         else:
             cmd = cmd_ext[j]
+        st[S_CMD] = cmd
         st[S_TM] += p[P_ACT_ALPHA] * (cmd - st[S_TM])
         th, om, thh, omh = x[0], x[1], x[2], x[3]
         contact = p[P_KC] * (th - thh) + p[P_BC] * (om - omh)
@@ -265,9 +268,15 @@ class World:
     ``read()``/``step(cmd)`` advance one sample with the command from outside (live).
     """
 
-    def __init__(self, cfg: WorldConfig | None = None, wheel: VirtualWheel | None = None):
+    def __init__(
+        self,
+        cfg: WorldConfig | None = None,
+        wheel: VirtualWheel | None = None,
+        safety: SafetyLimits | None = None,
+    ):
         self.cfg = cfg or WorldConfig()
         self.wheel = wheel or VirtualWheel()
+        self.safety = safety or SafetyLimits()
         self._trial = False
 
     # -- trial set-up -------------------------------------------------------------------
@@ -285,6 +294,7 @@ class World:
         p[P_DT] = dt
         m.configure(p, behaviour, cfg.fs_hz)
         self.p = p
+        self.safety_vec = self.safety.kernel_vector(cfg.fs_hz)
         self.ring_r = np.zeros(m.reflex_delay_samples(cfg.fs_hz))
         self.ring_s = np.zeros(m.sensor_delay_samples(cfg.fs_hz))
         self.x = np.zeros(4)
@@ -338,6 +348,7 @@ class World:
                 out[:, done : done + m],
                 self._k,
                 m,
+                self.safety_vec,
             )
             for key in extra:
                 extra[key][done : done + m] = b[key][self._k : self._k + m]
@@ -389,6 +400,7 @@ class World:
             self._out1,
             self._k,
             1,
+            self.safety_vec,
         )
         self._k += 1
         self._n += 1
