@@ -84,6 +84,38 @@ def _cmd_report(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run(a: argparse.Namespace) -> int:
+    from app.run import run_session
+    from protocols.engine import State
+
+    state = run_session(
+        a.rig, a.subject, a.out, resume=a.resume, protocol_path=a.protocol, breaks=not a.no_breaks
+    )
+    return 0 if state is State.DONE else 3
+
+
+def _cmd_stop(a: argparse.Namespace) -> int:
+    from app.run import stop_running
+
+    pid = stop_running(a.out)
+    print(f"emergency stop sent to the session in {a.out} (process {pid})")
+    return 0
+
+
+def _cmd_diagnose(a: argparse.Namespace) -> int:
+    from analysis.diagnosis import run_diagnosis
+
+    result = run_diagnosis(a.dir, a.out, jobs=a.jobs, progress=Progress("diagnose"))
+    print(result.summary())
+    return 0
+
+
+def _cmd_gui(a: argparse.Namespace) -> int:
+    from app.gui.main import run_gui
+
+    return run_gui(rig=a.rig, out=a.out, protocol=a.protocol)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="steerlab",
@@ -121,6 +153,31 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True)
     r.add_argument("--jobs", type=int, default=1)
     r.set_defaults(func=_cmd_report)
+
+    n = sub.add_parser("run", help="run one subject's session on a rig, in real time")
+    n.add_argument("--rig", help="rig configuration TOML (default: the simulated rig)")
+    n.add_argument("--subject", type=int, required=True, help="subject number (from 1)")
+    n.add_argument("--out", default="sessions", help="data root (default: sessions/)")
+    n.add_argument("--resume", action="store_true", help="continue an interrupted session")
+    n.add_argument("--protocol", help="protocol TOML (default: the paper's protocol)")
+    n.add_argument("--no-breaks", action="store_true", help="skip the protocol's breaks")
+    n.set_defaults(func=_cmd_run)
+
+    t = sub.add_parser("stop", help="emergency stop of the session running in --out")
+    t.add_argument("--out", default="sessions")
+    t.set_defaults(func=_cmd_stop)
+
+    d = sub.add_parser("diagnose", help="find what the simulation gets wrong on measured data")
+    d.add_argument("dir")
+    d.add_argument("--out", required=True)
+    d.add_argument("--jobs", type=int, default=1)
+    d.set_defaults(func=_cmd_diagnose)
+
+    u = sub.add_parser("gui", help="experimenter GUI and subject dashboard")
+    u.add_argument("--rig", help="rig configuration TOML (default: the simulated rig)")
+    u.add_argument("--out", default="sessions", help="data root (default: sessions/)")
+    u.add_argument("--protocol", help="protocol TOML (default: the paper's protocol)")
+    u.set_defaults(func=_cmd_gui)
     return p
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from analysis.report import ReportError
+from app.run import USER_ERRORS as RUN_ERRORS
 from app.simulate import SimulateError
 from protocols.datafile import DataFileError
 from protocols.interchange import InterchangeError
@@ -12,4 +14,6 @@ USER_ERRORS: tuple[type[Exception], ...] = (
     DataFileError,
     InterchangeError,
     ProtocolError,
+    ReportError,
+    *RUN_ERRORS,
 )

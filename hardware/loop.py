@@ -1,23 +1,34 @@
 """The control loop that runs one trial through the device interfaces, one sample per cycle.
 
-Per cycle: read the drive (angle, velocity) and the torque sensor, take the newest glove
-reading, render the virtual wheel plus the perturbation, command the drive, end the cycle
-(SYNC). Samples go out in blocks for the engine. Whatever ends the trial, the finalizer leaves
-the motor at zero torque and disabled.
+Per cycle: check the rig's health and the emergency stop, read the drive (angle, velocity) and
+the torque sensor, take the newest glove reading, compute the motor command (virtual wheel +
+perturbation within the safety limits, :func:`hardware.safety.loop_command`), command the drive,
+end the cycle (SYNC). Samples go out in blocks for the engine.
 
-The same loop serves the lab rig and the simulated rig (whose devices sit on the simulated
-world), paced at wall-clock speed (``realtime=True``) or as fast as possible.
+Whatever ends the trial (the end, an abort, a fault, an exception, the generator being closed),
+the finalizer leaves the motor at zero torque and disabled.
+
+Faults that end a trial as aborted (:class:`protocols.engine.TrialFault`, with the reason):
+the emergency stop; a rig health problem (``health()`` returns a reason: lost drive heartbeat,
+drive fault/EMCY, CAN send failure, glove stream stopped or broken); a cycle later than
+``SafetyLimits.loop_stall_s``. In real time a watchdog thread also quick-stops the drive if the
+loop itself hangs.
+
+Pause: with ``pause_fades_out`` (a real rig, where time cannot stop) the perturbation fades out
+and the trial ends as aborted, to be run again; without it (the simulated rig) the loop simply
+waits, with the simulated world, until the engine asks for the next block.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
 from hardware.interfaces import Display, GloveUnit, TorqueSensor, WheelDrive
-from hardware.safety import SafetyLimits, loop_command
+from hardware.safety import SafetyLimits, loop_command, warm_up
 from protocols.engine import LoopControl, TrialFault
 from protocols.session import TrialSetup
 
@@ -33,6 +44,8 @@ LOOP_CHANNELS = (
     "grip_force_left_N",
     "grip_force_right_N",
 )
+PAUSE_FADE_S = 0.5
+SPIN_S = 0.25e-3
 
 
 class DeviceLoop:
@@ -46,24 +59,53 @@ class DeviceLoop:
         realtime: bool = False,
         block_s: float = 0.05,
         trial_hooks: Sequence[Callable[[TrialSetup], None]] = (),
+        pre_trial: Callable[[], None] | None = None,
+        health: Callable[[], str | None] | None = None,
+        estop: threading.Event | None = None,
+        pause_fades_out: bool = False,
         clock: Callable[[], float] = time.perf_counter,
         safety: SafetyLimits | None = None,
     ) -> None:
-        self.safety = safety or SafetyLimits()
         self.drive, self.sensor, self.glove, self.display = drive, torque_sensor, glove, display
         self.realtime = realtime
         self.block_s = block_s
         self.trial_hooks = list(trial_hooks)
+        self.pre_trial = pre_trial
+        self.health = health
+        self.estop = estop
+        self.pause_fades_out = pause_fades_out
         self.clock = clock
+        self.safety = safety or SafetyLimits()
         self._stats: dict = {}
+        warm_up()
+        self._last_cycle = 0.0
+        self._stall: str | None = None
 
     def emergency_stop(self) -> None:
-        self.drive.quick_stop()
-        self.drive.disable()
+        if self.estop is not None:
+            self.estop.set()
+        try:
+            self.drive.quick_stop()
+        finally:
+            self.drive.disable()
 
     def trial_stats(self) -> dict:
         return dict(self._stats)
 
+    # -- watchdog --------------------------------------------------------------------------------
+    def _watch(self, stop: threading.Event) -> None:
+        """Quick-stop the drive if the loop stops cycling (it is stuck, not merely late)."""
+        limit = self.safety.loop_stall_s
+        while not stop.wait(limit / 4):
+            late = self.clock() - self._last_cycle
+            if late > limit and self._stall is None:
+                self._stall = f"control loop stalled: no cycle for {late * 1e3:.1f} ms"
+                try:
+                    self.drive.quick_stop()
+                except Exception:  # the loop's finalizer still disables the drive
+                    pass
+
+    # -- the trial ---------------------------------------------------------------------------------
     def run_trial(self, setup: TrialSetup, control: LoopControl) -> Iterator[dict]:
         for hook in self.trial_hooks:
             hook(setup)
@@ -76,12 +118,26 @@ class DeviceLoop:
         tp_all = setup.perturbation_nm
         k_sw, b_sw = setup.wheel_k, setup.wheel_b
         limits = self.safety.kernel_vector(fs)
+        stall_s = self.safety.loop_stall_s
         cmd = 0.0
         late = 0
         errors: list[float] = []
         self._stats = {}
+        self._stall = None
+        fade = 1.0  # perturbation gain while a pause fades it out
+        fade_step = 1.0 / max(1, int(round(PAUSE_FADE_S * fs)))
+        watchdog_stop = threading.Event()
+        watchdog = None
         self.drive.enable()
         try:
+            if self.pre_trial is not None:
+                self.pre_trial()
+            self._last_cycle = self.clock()
+            if self.realtime:
+                watchdog = threading.Thread(
+                    target=self._watch, args=(watchdog_stop,), name="loop-watchdog", daemon=True
+                )
+                watchdog.start()
             t0 = self.clock()
             k = 0
             while k < n_total:
@@ -91,20 +147,36 @@ class DeviceLoop:
                     if self.realtime:
                         due = t0 + (k + j) * period
                         now = self.clock()
-                        if due - now > 0.002:
-                            time.sleep(due - now - 0.001)
+                        # Sleep most of the wait (other threads and processes run), spin the
+                        # last SPIN_S: sleep wakes up to ~0.1 ms late, the spin does not.
+                        if due - now > SPIN_S + 1e-4:
+                            time.sleep(due - now - SPIN_S)
                         while self.clock() < due:
                             pass
                         err = self.clock() - due
                         errors.append(err)
                         if err > 0.5e-3:
                             late += 1
+                        if err > stall_s:
+                            raise TrialFault(f"control loop stalled: cycle {err * 1e3:.1f} ms late")
+                    self._last_cycle = self.clock()
+                    if self.estop is not None and self.estop.is_set():
+                        raise TrialFault("emergency stop")
+                    if self._stall is not None:
+                        raise TrialFault(self._stall)
+                    if self.health is not None:
+                        problem = self.health()
+                        if problem is not None:
+                            raise TrialFault(problem)
                     r = self.drive.read()
                     td = self.sensor.read()
                     g = self.glove.latest()
                     if g is None:
                         raise TrialFault("no grip-force reading from the glove unit")
                     tp = tp_all[k + j]
+                    if fade < 1.0 or (self.pause_fades_out and control.paused.is_set()):
+                        fade = max(0.0, fade - fade_step)
+                        tp *= fade
                     cmd = loop_command(tp, r.angle_rad, r.velocity_rad_s, cmd, k_sw, b_sw, limits)
                     self.drive.set_torque(cmd)
                     self.drive.sync()
@@ -120,16 +192,28 @@ class DeviceLoop:
                     buf["grip_force_N"][j] = g.left_n + g.right_n
                     if self.display is not None and (k + j) % 20 == 0:
                         self.display.show_angle(r.angle_rad)
+                    if fade == 0.0:
+                        # Faded out for a pause: end here; the trial is run again later.
+                        k += j + 1
+                        yield {c: v[: j + 1] for c, v in buf.items()}
+                        raise TrialFault(
+                            "paused mid-trial by the experimenter; run the trial again"
+                        )
                 k += m
                 yield buf
                 if control.stop_requested:
                     return
         finally:
+            watchdog_stop.set()
             # Whatever ended the trial: no torque on the wheel, power stage off.
             try:
                 self.drive.set_torque(0.0)
+            except Exception:
+                pass
             finally:
                 self.drive.disable()
+            if watchdog is not None:
+                watchdog.join(1.0)
             if errors:
                 e = np.abs(np.asarray(errors)) * 1e3
                 self._stats = {
@@ -137,5 +221,6 @@ class DeviceLoop:
                     "period_error_p99_ms": float(np.percentile(e, 99)),
                     "period_error_max_ms": float(e.max()),
                     "late_cycles": int(late),
+                    "late_fraction": float(late / len(errors)),
                     "cycles": len(errors),
                 }

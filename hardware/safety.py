@@ -37,8 +37,13 @@ class SafetyLimits:
     glove_timeout_s: float = 0.25  # no glove frame for this long: trial aborted
 
     def validate(self, where: str = "[safety]") -> None:
-        for name in ("max_torque_nm", "max_slew_nm_per_s", "soft_angle_limit_deg",
-                     "loop_stall_s", "glove_timeout_s"):  # fmt: skip
+        for name in (
+            "max_torque_nm",
+            "max_slew_nm_per_s",
+            "soft_angle_limit_deg",
+            "loop_stall_s",
+            "glove_timeout_s",
+        ):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{where}.{name}: must be a finite number > 0, got {v!r}")
@@ -101,3 +106,9 @@ def loop_command(
     elif step < -max_step:
         cmd = previous - max_step
     return cmd
+
+
+def warm_up() -> None:
+    """Compile ``loop_command`` now, not in the first cycle of a trial (a stall there trips
+    the watchdog)."""
+    loop_command(0.0, 0.0, 0.0, 0.0, 4.2, 2.0, SafetyLimits().kernel_vector(1000.0))

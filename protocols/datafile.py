@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Iterable
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
@@ -22,6 +23,7 @@ import numpy as np
 from protocols import events as ev
 from protocols.perturbation import PerturbationDesign
 from protocols.records import (
+    CORE_CHANNELS,
     STATUS_COMPLETE,
     STATUS_INCOMPLETE,
     STATUS_SUPERSEDED,
@@ -422,39 +424,47 @@ class SessionFile:
             )
         return out
 
-    def records(self, *, statuses: set[str] | None = None) -> list[TrialRecord]:
-        """All trials as :class:`TrialRecord` (optionally only those with the given status)."""
+    def records(
+        self, *, statuses: set[str] | None = None, extra_channels: Iterable[str] | None = None
+    ) -> list[TrialRecord]:
+        """All trials as :class:`TrialRecord`, optionally only those with the given status.
+
+        ``extra_channels``: which channels beyond the five interchange ones to read into
+        ``record.extra`` (None: all of them; ``()``: none, the fastest for analysis).
+        """
         out = []
         with _damage_is_an_error(self.path), _open_for_reading(self.path) as f:
             for key in self.trial_keys:
-                g = f["trials"][key]
-                status = str(_attr(g, "status"))
-                if statuses is not None and status not in statuses:
+                attrs = self.trial_attrs[key]
+                if statuses is not None and str(attrs.get("status")) not in statuses:
                     continue
-                out.append(_record_from_group(self.path, key, g))
+                g = f["trials"][key]
+                out.append(_record_from_group(self.path, key, g, dict(attrs), extra_channels))
         out.sort(key=lambda r: (r.trial_index or 0, int(r.attrs.get("attempt", 1))))
         return out
 
 
-def _record_from_group(path: Path, key: str, g: h5py.Group) -> TrialRecord:
+def _record_from_group(
+    path: Path,
+    key: str,
+    g: h5py.Group,
+    attrs: dict | None = None,
+    extra_channels: Iterable[str] | None = None,
+) -> TrialRecord:
     where = f"{path}:/trials/{key}"
-    attrs = {a: _attr(g, a) for a in g.attrs}
+    if attrs is None:
+        attrs = {a: _attr(g, a) for a in g.attrs}
     missing = [
         c for c in ("subject", "condition", "repetition", "fs_hz", "status") if c not in attrs
     ]
     if missing:
         raise DataFileError(f"{where}: missing attribute(s) {missing}")
     data: dict[str, np.ndarray] = {}
+    wanted = None if extra_channels is None else set(CORE_CHANNELS) | set(extra_channels)
     for name, d in g.items():
-        if isinstance(d, h5py.Dataset) and name != "marks":
+        if isinstance(d, h5py.Dataset) and name != "marks" and (wanted is None or name in wanted):
             data[name] = np.asarray(d[()], dtype=float)
-    core = (
-        "time_s",
-        "perturbation_torque_Nm",
-        "driver_torque_Nm",
-        "wheel_angle_rad",
-        "grip_force_N",
-    )
+    core = CORE_CHANNELS
     n = min((len(data[c]) for c in core if c in data), default=0)
     for c in core:
         if c not in data:

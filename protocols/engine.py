@@ -22,6 +22,8 @@ from protocols import events as ev
 from protocols.records import STATUS_ABORTED, STATUS_COMPLETE, STATUS_SUPERSEDED
 from protocols.session import SessionPlan, TrialSetup, TrialSpec
 
+STOP_GRACE_S = 2.0
+
 
 class State(StrEnum):
     IDLE = "idle"
@@ -175,10 +177,9 @@ class SessionEngine:
 
     def emergency_stop(self, reason: str = "emergency stop") -> None:
         # Straight to the loop, not via the engine thread: the motor must stop now.
-        try:
-            self.loop.emergency_stop()
-        finally:
-            self.abort(reason)
+        # The reason first (a flag, microseconds), so the trial records why; then the loop.
+        self.abort(reason)
+        self.loop.emergency_stop()
 
     def redo(self, trial_index: int, reason: str = "redo requested by the experimenter") -> None:
         """Run this trial again; the earlier attempt stays in the file, marked superseded."""
@@ -313,16 +314,21 @@ class SessionEngine:
         status, reason, n = STATUS_COMPLETE, None, 0
         gen = self.loop.run_trial(setup, control)
         try:
+            stop_seen: float | None = None
             for block in gen:
                 m = len(next(iter(block.values())))
                 self._emit(ev.SamplesAcquired(key, n, block))
                 n += m
                 if self._stop_req is not None:
-                    break
+                    # The loop has been told (control.abort_reason) and ends by itself; blocks
+                    # it recorded meanwhile are still written. Only a loop that ignores the
+                    # request is cut off.
+                    stop_seen = stop_seen or self.clock()
+                    if self.clock() - stop_seen > STOP_GRACE_S:
+                        break
+                    continue
                 if self._pause_req:
                     self._wait_while_paused(key, n)
-                    if self._stop_req is not None:
-                        break
             if self._stop_req is not None:
                 status, reason = STATUS_ABORTED, self._stop_req
                 self._transition(State.ABORTING, reason)
@@ -333,7 +339,8 @@ class SessionEngine:
                 )
                 self._transition(State.ABORTING, reason)
         except TrialFault as f:
-            status, reason = STATUS_ABORTED, str(f)
+            # A fault the experimenter's stop caused carries the stop's reason.
+            status, reason = STATUS_ABORTED, self._stop_req or str(f)
             self._transition(State.ABORTING, reason)
         except Exception as e:
             status, reason = STATUS_ABORTED, f"internal error: {e!r}"

@@ -829,6 +829,10 @@ class DriveColumnTorque:
     def read(self) -> float:
         return self._drive.column_torque_nm() - self.offset_nm
 
+    def clear_recent(self) -> None:
+        """Forget earlier column torque values: the next zero() sees only what follows."""
+        self._drive._column_recent.clear()
+
     def zero(self) -> None:
         """:raises DriveError: no column torque has been received yet."""
         samples = list(self._drive._column_recent)

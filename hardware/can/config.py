@@ -80,6 +80,11 @@ class SafetyConfig:
     max_torque_nm: float
     max_slew_nm_per_s: float
     soft_angle_limit_deg: float
+    # Used by the control loop (hardware.safety.SafetyLimits), not by the drive stack:
+    fade_zone_deg: float = 15.0
+    brake_damping_nms_per_rad: float = 5.0
+    loop_stall_s: float = 0.02
+    glove_timeout_s: float = 0.25
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ import numpy as np
 
 from hardware.interfaces import DriveReading, GripReading
 from hardware.loop import LOOP_CHANNELS, DeviceLoop
+from hardware.safety import SafetyLimits
 from hardware.sim.physiology import ConditionBehaviour, PopulationSpread, SubjectPhysiology
 from hardware.sim.world import World, WorldConfig
 from protocols.engine import LoopControl
@@ -73,6 +74,8 @@ class SimulatedRig:
         return b
 
     def device_loop(self, realtime: bool = False, **kw) -> DeviceLoop:
+        # In-process and simulated: a late cycle harms nobody, so only a real hang aborts.
+        kw.setdefault("safety", SafetyLimits(loop_stall_s=1.0))
         return DeviceLoop(
             self.drive,
             self.torque_sensor,

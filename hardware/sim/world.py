@@ -405,6 +405,14 @@ class World:
         self._k += 1
         self._n += 1
 
+    def warm_up(self, behaviour: ConditionBehaviour) -> None:
+        """Compile both kernel paths now, so the first live cycle is not a compile."""
+        self.begin_trial(behaviour, 0.5, seed=0)
+        self.run(np.zeros(2))
+        self.read()
+        self.step(0.0)
+        self._trial = False
+
     @property
     def samples_done(self) -> int:
         return self._n

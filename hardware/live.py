@@ -1,0 +1,384 @@
+"""The live path: a rig's devices, and the 1 kHz control loop in a process of its own.
+
+:class:`RigDevices` opens what a rig file names: the CiA 402 drive on its CAN bus and the glove
+unit on its serial port. For the simulated rig, the same drivers talk to a simulated drive node
+on python-can's virtual bus (hosting the simulated world) and to a pseudo-terminal fed by the
+simulated glove unit: every byte and frame is the lab's.
+
+:class:`ProcessLoop` is the engine's :class:`protocols.engine.TrialLoop` for a real-time rig. The
+control loop runs in a separate process, so the session file writer and the GUI, which run in
+the engine's process, never hold it up (Python runs one thread at a time per process). Blocks of
+samples come back through a queue; pause, abort and the emergency stop go the other way, the
+emergency stop through a shared event that the loop checks every cycle.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import replace
+
+import can
+import numpy as np
+import serial
+
+from hardware.can import CiA402Drive, SimulatedDrive, open_bus
+from hardware.glove.unit import SerialGloveUnit
+from hardware.loop import DeviceLoop
+from hardware.rig import RigConfig, load_rig
+from protocols.engine import LoopControl, TrialFault
+from protocols.session import TrialSetup
+
+ZEROING_S = 0.3
+
+
+class RigError(RuntimeError):
+    """The rig could not be brought up; the message says which device and why."""
+
+
+class WorldPlant:
+    """The simulated world behind the simulated drive's motor shaft (hardware.can.Plant)."""
+
+    def __init__(self, sim_rig, column_offset_nm: float, seed: int = 0) -> None:
+        self.sim = sim_rig
+        self.offset = column_offset_nm
+        self.released = False  # the simulated subject lets go while the sensor is zeroed
+        self._rng = np.random.default_rng(seed)
+        self._grip = (0.0, 0.0)
+        self._ready = False
+        sim_rig.world.warm_up(next(iter(sim_rig.subject.physiology.behaviour.values())))
+
+    def step(self, motor_torque_nm: float) -> None:
+        if self._ready and not self.released:
+            self.sim.world.step(motor_torque_nm)
+
+    def read(self) -> tuple[float, float, float, float]:
+        if not self._ready:
+            return 0.0, 0.0, 0.0, self.offset
+        r = self.sim.world.read()
+        self._grip = (float(r["grip_force_left_N"]), float(r["grip_force_right_N"]))
+        if self.released:
+            noise = self.sim.cfg.sensors.torque_noise_sd
+            column = self.offset + noise * self._rng.standard_normal()
+            return r["wheel_angle_rad"], 0.0, r["motor_torque_Nm"], column
+        return (
+            r["wheel_angle_rad"],
+            r["wheel_velocity_rad_s"],
+            r["motor_torque_Nm"],
+            r["driver_torque_Nm"] + self.offset,
+        )
+
+    def grip(self, _t: float) -> tuple[float, float]:
+        # Called by the glove simulator's thread: a cached pair, never the world itself.
+        return self._grip
+
+    def begin_trial(self, setup: TrialSetup) -> None:
+        self.sim.begin_trial(setup)
+        self._ready = True
+
+
+class RigDevices:
+    """Everything a rig file names, opened and ready; ``close()`` releases it all."""
+
+    def __init__(self, rig: RigConfig, *, subject_number: int = 1) -> None:
+        self.rig = rig
+        self.plant: WorldPlant | None = None
+        self.node: SimulatedDrive | None = None
+        self.glove_sim = None
+        self.physiology: dict | None = None
+        self._buses: list[can.BusABC] = []
+        self.drive: CiA402Drive | None = None
+        self.glove: SerialGloveUnit | None = None
+        drive_cfg = rig.drive
+        try:
+            port = rig.glove.port
+            if rig.simulated:
+                from hardware.glove.simulated import SimulatedGloveUnit
+                from hardware.sim.physiology import make_population
+                from hardware.sim.rig import simulated_rig
+                from hardware.sim.world import WorldConfig
+
+                sim = rig.simulation
+                phys = make_population(subject_number, seed=sim.seed)[subject_number - 1]
+                self.physiology = phys.to_dict()
+                sim_rig = simulated_rig(phys, WorldConfig(fs_hz=rig.loop_rate_hz))
+                self.plant = WorldPlant(sim_rig, sim.column_torque_offset_nm, seed=phys.seed)
+                # A channel of its own: two simulated rigs in one process must not cross-talk.
+                drive_cfg = replace(
+                    drive_cfg, channel=f"{drive_cfg.channel}-{uuid.uuid4().hex[:8]}"
+                )
+                node_bus = can.Bus(
+                    interface="virtual", channel=drive_cfg.channel, receive_own_messages=False
+                )
+                self._buses.append(node_bus)
+                self.node = SimulatedDrive(node_bus, drive_cfg, self.plant)
+                self.node.start()
+                self.glove_sim = SimulatedGloveUnit(self.plant.grip, rig.glove.calibration).start()
+                port = self.glove_sim.port
+            self.drive_config = drive_cfg
+            bus = open_bus(drive_cfg)
+            self._buses.append(bus)
+            self.drive = CiA402Drive(bus, drive_cfg)
+            try:
+                ser = serial.Serial(port, rig.glove.baudrate, timeout=0.05)
+            except (serial.SerialException, OSError) as e:
+                raise RigError(f"glove unit: cannot open serial port {port!r}: {e}") from None
+            self.glove = SerialGloveUnit(ser, rig.glove.calibration).start()
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def torque_sensor(self):
+        return self.drive.torque_sensor
+
+    def begin_trial(self, setup: TrialSetup) -> None:
+        if self.plant is not None:
+            self.plant.begin_trial(setup)
+
+    def zero_torque_sensor(self) -> None:
+        """With the wheel released, average the column torque and take it as the offset."""
+        if self.plant is not None:
+            self.plant.released = True
+        self.drive.torque_sensor.clear_recent()
+        try:
+            period = 1.0 / self.rig.loop_rate_hz
+            t0 = time.perf_counter()
+            for i in range(int(ZEROING_S * self.rig.loop_rate_hz)):
+                while time.perf_counter() < t0 + i * period:
+                    pass
+                self.drive.set_torque(0.0)
+                self.drive.sync()
+            self.drive.torque_sensor.zero()
+        finally:
+            if self.plant is not None:
+                self.plant.released = False
+
+    def health(self) -> str | None:
+        """A reason to stop the trial now, or None."""
+        d, g = self.drive, self.glove
+        if d.heartbeat_lost:
+            return "drive lost: no heartbeat"
+        if not d.ok:
+            faults = d.active_faults
+            return f"drive fault: {faults[-1]}" if faults else "drive not ready"
+        if g.error is not None:
+            return f"glove unit failed: {g.error}"
+        age = g.age_s()
+        if age is None or age > self.rig.safety.glove_timeout_s:
+            return f"glove stream stopped: no frame for {'ever' if age is None else f'{age:.2f} s'}"
+        return None
+
+    def status(self) -> dict:
+        d, g = self.drive, self.glove
+        st = g.stats().as_dict() if g is not None else {}
+        return {
+            "drive_state": getattr(d.state, "name", str(d.state)) if d else "none",
+            "drive_ok": bool(d and d.ok),
+            "drive_enabled": bool(d and d.enabled),
+            "heartbeat_age_s": d.heartbeat_age_s() if d else None,
+            "missed_tpdo": d.missed_tpdo if d else None,
+            "faults": [str(f) for f in d.faults] if d else [],
+            "glove_rate_hz": st.get("rate_hz"),
+            "glove_crc_errors": st.get("crc_errors"),
+            "glove_dropped_frames": st.get("dropped_frames"),
+            "glove_age_s": g.age_s() if g else None,
+        }
+
+    def device_loop(self, *, estop=None, realtime: bool = True) -> DeviceLoop:
+        """The control loop over these devices. Its consumer must keep pulling blocks: the
+        loop only cycles while it is asked for samples. The engine therefore drives a real-time
+        rig through :class:`ProcessLoop`, never this loop directly (an engine pause would
+        suspend the loop and leave the drive holding its last command)."""
+        return DeviceLoop(
+            self.drive,
+            self.drive.torque_sensor,
+            self.glove,
+            realtime=realtime,
+            trial_hooks=[self.begin_trial],
+            pre_trial=self.zero_torque_sensor,
+            health=self.health,
+            estop=estop,
+            pause_fades_out=True,
+            safety=self.rig.safety,
+        )
+
+    def close(self) -> None:
+        for closer in (
+            lambda: self.drive and self.drive.disable(),
+            lambda: self.drive and self.drive.close(),
+            lambda: self.glove and self.glove.close(),
+            lambda: self.glove_sim and self.glove_sim.close(),
+            lambda: self.node and self.node.close(),
+        ):
+            try:
+                closer()
+            except Exception:
+                pass
+        for b in self._buses:
+            try:
+                b.shutdown()
+            except Exception:
+                pass
+        self._buses = []
+
+
+# -- the loop's own process ----------------------------------------------------------------------
+def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop) -> None:
+    import gc
+
+    from hardware.realtime import tune_process
+
+    # Before the rig's threads start, so that they inherit the priority (the simulated drive
+    # node answering each SYNC is one of them).
+    tuning = tune_process()
+    try:
+        devices = RigDevices(load_rig(rig_path), subject_number=subject_number)
+    except Exception as e:
+        out.put(("error", f"{type(e).__name__}: {e}"))
+        return
+    try:
+        loop = devices.device_loop(estop=estop)
+        out.put(
+            (
+                "ready",
+                {"status": devices.status(), "physiology": devices.physiology, "realtime": tuning},
+            )
+        )
+        while True:
+            msg = conn.recv()
+            if msg[0] == "close":
+                break
+            if msg[0] != "trial":
+                continue
+            control = LoopControl()
+            fault = None
+            closing = False
+            gc.disable()  # no collection pauses inside the loop; collect between trials
+            try:
+                for i, block in enumerate(loop.run_trial(msg[1], control)):
+                    out.put(("block", block))
+                    if i % 20 == 0:
+                        out.put(("status", devices.status()))
+                    while conn.poll():
+                        m = conn.recv()
+                        if m[0] == "abort":
+                            control.abort_reason = m[1]
+                        elif m[0] == "pause":
+                            control.paused.set()
+                        elif m[0] == "close":
+                            control.abort_reason, closing = "the session was closed", True
+            except TrialFault as f:
+                fault = str(f)
+            except Exception as e:
+                fault = f"internal error in the live loop: {type(e).__name__}: {e}"
+            finally:
+                gc.enable()
+                gc.collect()
+            cpu = os.times()
+            loop._stats["loop_process_cpu_s"] = cpu.user + cpu.system
+            out.put(
+                ("end", {"stats": loop.trial_stats(), "fault": fault, "status": devices.status()})
+            )
+            if closing:
+                break
+    finally:
+        devices.close()
+
+
+class ProcessLoop:
+    """A real-time rig's control loop, run in its own process (see the module docstring)."""
+
+    def __init__(self, rig_path: str | None, subject_number: int, *, start_timeout_s: float = 60.0):
+        ctx = mp.get_context("spawn")
+        self._estop = ctx.Event()
+        self._conn, child = ctx.Pipe()
+        self._q: mp.Queue = ctx.Queue()
+        self._stats: dict = {}
+        self.status: dict = {}
+        self.physiology: dict | None = None
+        self._lock = threading.Lock()
+        self._proc = ctx.Process(
+            target=_worker,
+            args=(rig_path, subject_number, child, self._q, self._estop),
+            name="steerlab-loop",
+            daemon=True,
+        )
+        self._proc.start()
+        try:
+            kind, payload = self._q.get(timeout=start_timeout_s)
+        except queue.Empty:
+            self.close()
+            raise RigError(f"the rig did not come up within {start_timeout_s:.0f} s") from None
+        if kind == "error":
+            self._proc.join(5)
+            raise RigError(f"the rig could not be brought up: {payload}")
+        self.status = payload["status"]
+        self.physiology = payload["physiology"]
+        self.realtime = payload["realtime"]
+
+    def emergency_stop(self) -> None:
+        self._estop.set()
+
+    def trial_stats(self) -> dict:
+        return dict(self._stats)
+
+    def run_trial(self, setup: TrialSetup, control: LoopControl) -> Iterator[dict]:
+        self._estop.clear()
+        self._stats = {}
+        with self._lock:
+            self._conn.send(("trial", setup))
+        done = threading.Event()
+        forwarder = threading.Thread(target=self._forward, args=(control, done), daemon=True)
+        forwarder.start()
+        try:
+            while True:
+                try:
+                    kind, payload = self._q.get(timeout=0.1)
+                except queue.Empty:
+                    if not self._proc.is_alive():
+                        raise TrialFault(
+                            f"the live loop process died (exit code {self._proc.exitcode})"
+                        ) from None
+                    continue
+                if kind == "block":
+                    yield payload
+                elif kind == "status":
+                    self.status = payload
+                elif kind == "end":
+                    self._stats = payload["stats"]
+                    self.status = payload["status"]
+                    if payload["fault"]:
+                        raise TrialFault(payload["fault"])
+                    return
+        finally:
+            done.set()
+            forwarder.join(1.0)
+
+    def _forward(self, control: LoopControl, done: threading.Event) -> None:
+        """Pass pause and abort on to the loop process, even while the engine is not pulling."""
+        sent_abort = sent_pause = False
+        while not done.wait(0.02):
+            with self._lock:
+                if control.abort_reason is not None and not sent_abort:
+                    self._conn.send(("abort", control.abort_reason))
+                    sent_abort = True
+                if control.paused.is_set() and not sent_pause:
+                    self._conn.send(("pause",))
+                    sent_pause = True
+
+    def close(self) -> None:
+        try:
+            with self._lock:
+                self._conn.send(("close",))
+        except (OSError, BrokenPipeError):
+            pass
+        self._proc.join(10)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(5)

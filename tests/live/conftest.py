@@ -1,0 +1,64 @@
+"""Fixtures for the live path: the simulated rig over the virtual CAN bus and a pty glove."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+
+from hardware.live import RigDevices
+from hardware.rig import load_rig
+from protocols.protocol import parse_protocol
+
+SHORT_PROTOCOL = """
+name = "short-test"
+loop_rate_hz = 1000.0
+[trial]
+periods = 1
+run_in_s = 1.0
+fade_in_s = 0.5
+fade_out_s = 0.5
+familiarization_trials = 0
+repetitions = 1
+break_between_trials_s = 0.0
+break_between_conditions_s = 0.0
+[perturbation]
+period_s = 5.0
+n_bands = 10
+first_bin = 3
+f_max_hz = 20.0
+seed = 1
+[[conditions]]
+name = "BT12"
+boundary_deg = 12.0
+[[conditions]]
+name = "PT"
+boundary_deg = 0.0
+"""
+
+
+@pytest.fixture
+def short_protocol():
+    return parse_protocol(SHORT_PROTOCOL, "short.toml")
+
+
+@pytest.fixture
+def short_protocol_file(tmp_path):
+    p = tmp_path / "short.toml"
+    p.write_text(SHORT_PROTOCOL)
+    return p
+
+
+@pytest.fixture
+def rig_config():
+    # The test process is not real-time tuned and shares the CPU with other tests: allow late
+    # cycles here, so that each fault test sees its own fault (the stall test sets its own).
+    rig = load_rig()
+    return replace(rig, safety=replace(rig.safety, loop_stall_s=0.5))
+
+
+@pytest.fixture
+def devices(rig_config):
+    d = RigDevices(rig_config, subject_number=2)
+    yield d
+    d.close()

@@ -1,0 +1,185 @@
+"""The engine's real-time loop in its own process, and the ``steerlab run``/``stop`` commands."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from hardware.live import ProcessLoop, RigError
+from protocols import events as ev
+from protocols.datafile import SessionFile, SessionWriter
+from protocols.engine import SessionEngine, State
+from protocols.session import build_plan
+from tests.helpers import ROOT
+
+
+@pytest.fixture
+def lenient_rig(tmp_path):
+    # Behaviour, not timing, is tested here (timing: benchmarks/live_loop.py); other tests may
+    # load the CPU, so a late cycle must not abort these trials.
+    text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
+    p = tmp_path / "rig.toml"
+    p.write_text(text.replace("loop_stall_s = 0.02 ", "loop_stall_s = 0.5 "))
+    assert "loop_stall_s = 0.5" in p.read_text()
+    return p
+
+
+@pytest.fixture
+def process_loop(lenient_rig):
+    loop = ProcessLoop(str(lenient_rig), 2)
+    yield loop
+    loop.close()
+
+
+def _engine(loop, protocol, path):
+    eng = SessionEngine(build_plan(protocol, 2), loop)
+    eng.subscribe(SessionWriter(path))
+    return eng
+
+
+def _when(eng, start_samples, action):
+    fired = threading.Event()
+
+    def on(e):
+        if isinstance(e, ev.SamplesAcquired) and e.start >= start_samples and not fired.is_set():
+            fired.set()
+            action()
+
+    eng.subscribe(on)
+    return fired
+
+
+def test_session_in_the_loop_process_is_real_time(process_loop, short_protocol, tmp_path):
+    assert process_loop.realtime["switch_interval_s"] == 2e-4
+    eng = _engine(process_loop, short_protocol, tmp_path / "S02.h5")
+    assert eng.run() is State.DONE
+    recs = SessionFile(tmp_path / "S02.h5").records()
+    assert [r.status for r in recs] == ["complete", "complete"]
+    stats = json.loads(recs[0].attrs["loop_stats"])
+    assert stats["cycles"] == 6500
+    assert stats["period_error_p50_ms"] < 0.5  # timing quality itself: benchmarks/live_loop.py
+
+
+def test_pause_fades_out_and_ends_the_trial_without_losing_samples(
+    process_loop, short_protocol, tmp_path
+):
+    eng = _engine(process_loop, short_protocol, tmp_path / "S02.h5")
+    seen = []
+    eng.subscribe(seen.append)
+    _when(eng, 2000, eng.pause)
+    t = threading.Thread(target=eng.run)
+    t.start()
+    deadline = time.monotonic() + 20
+    while eng.state is not State.PAUSED and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(1.0)  # the loop keeps cycling in its process while the engine waits
+    eng.resume()
+    t.join(30)
+    (r,) = SessionFile(tmp_path / "S02.h5").records()
+    assert r.status == "aborted" and "paused mid-trial" in r.abort_reason
+    assert r.n_samples == sum(e.n for e in seen if isinstance(e, ev.SamplesAcquired))
+    tp = r.perturbation_torque_Nm
+    # Faded to zero; no step larger than the perturbation's own largest step (no torque jump).
+    own = np.max(np.abs(np.diff(r.perturbation_torque_Nm[:1500])))
+    assert tp[-1] == 0.0 and np.max(np.abs(np.diff(tp[-600:]))) <= own + 1e-6
+
+
+def test_emergency_stop_reaches_the_loop_process(process_loop, short_protocol, tmp_path):
+    eng = _engine(process_loop, short_protocol, tmp_path / "S02.h5")
+    _when(eng, 1500, lambda: threading.Thread(target=eng.emergency_stop).start())
+    assert eng.run() is State.IDLE
+    (r,) = SessionFile(tmp_path / "S02.h5").records()
+    assert r.status == "aborted" and r.abort_reason == "emergency stop"
+    assert process_loop.status["drive_enabled"] is False
+
+
+def test_loop_process_dies_mid_trial(process_loop, short_protocol, tmp_path):
+    eng = _engine(process_loop, short_protocol, tmp_path / "S02.h5")
+    _when(eng, 1500, lambda: os.kill(process_loop._proc.pid, signal.SIGKILL))
+    assert eng.run() is State.IDLE
+    (r,) = SessionFile(tmp_path / "S02.h5").records()
+    assert r.status == "aborted" and "live loop process died" in r.abort_reason
+    assert r.n_samples >= 1500
+
+
+def test_bad_rig_file_fails_to_come_up_with_its_reason(tmp_path):
+    bad = tmp_path / "rig.toml"
+    bad.write_text(
+        (ROOT / "hardware" / "rigs" / "simulated.toml")
+        .read_text()
+        .replace("node_id = 1 ", "node_id = 300 ")
+    )
+    with pytest.raises(RigError, match=r"node_id"):
+        ProcessLoop(str(bad), 1)
+
+
+def _steerlab(*args, **kw):
+    return subprocess.Popen(
+        [sys.executable, "-m", "app.cli", *map(str, args)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kw,
+    )
+
+
+def test_steerlab_run_and_stop(tmp_path, short_protocol_file, lenient_rig):
+    out = tmp_path / "sessions"
+    p = _steerlab(
+        "run", "--subject", 1, "--out", out, "--protocol", short_protocol_file, "--rig", lenient_rig
+    )
+    pidfile = out / "steerlab-run.pid"
+    deadline = time.monotonic() + 60
+    # Stop it from "another terminal" once the first trial is under way.
+    recorded = 0
+    while time.monotonic() < deadline and recorded < 1500:
+        time.sleep(0.1)
+        try:  # read what the running session has flushed so far (SWMR)
+            with h5py.File(out / "S01.h5", "r", libver="latest", swmr=True) as f:
+                for g in f["trials"].values():
+                    if "time_s" in g:
+                        g["time_s"].refresh()
+                        recorded = g["time_s"].shape[0]
+        except (OSError, KeyError):
+            continue
+    assert pidfile.exists() and recorded >= 1500
+    s = _steerlab("stop", "--out", out)
+    assert s.wait(30) == 0, s.stderr.read()
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 3
+    (r,) = SessionFile(out / "S01.h5").records()
+    assert r.status == "aborted" and "SIGUSR1" in r.abort_reason and r.n_samples > 1000
+    assert not pidfile.exists()
+    # Resume finishes the session: the aborted trial again, then the rest.
+    p = _steerlab(
+        "run",
+        "--subject",
+        1,
+        "--out",
+        out,
+        "--protocol",
+        short_protocol_file,
+        "--resume",
+        "--rig",
+        lenient_rig,
+    )
+    stdout, err = p.communicate(timeout=120)
+    assert p.returncode == 0, err + stdout
+    att = SessionFile(out / "S01.h5").attempts()
+    assert sorted(att[1]) == [(1, "aborted"), (2, "complete")] and att[2] == [(1, "complete")]
+    # Without --resume an existing session is refused.
+    p = _steerlab(
+        "run", "--subject", 1, "--out", out, "--protocol", short_protocol_file, "--rig", lenient_rig
+    )
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 2 and "--resume" in err
