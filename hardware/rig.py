@@ -97,10 +97,8 @@ def load_rig(path: str | Path | None = None) -> RigConfig:
         )
     drive = drive_config_from_dict(data, source=src)
     safety = SafetyLimits(**asdict(drive.safety))
-    try:
-        safety.validate(where=f"{src}: [safety]")
-    except ValueError as e:
-        raise ConfigError(src, "safety", None, str(e).split(": ", 2)[-1]) from None
+    for field, problem in safety.problems():
+        raise ConfigError(src, "safety", field, problem)
 
     g = data.get("glove")
     if not isinstance(g, dict):

@@ -36,24 +36,20 @@ class SafetyLimits:
     loop_stall_s: float = 0.02  # a cycle later than this: quick stop, trial aborted
     glove_timeout_s: float = 0.25  # no glove frame for this long: trial aborted
 
-    def validate(self, where: str = "[safety]") -> None:
-        for name in (
-            "max_torque_nm",
-            "max_slew_nm_per_s",
-            "soft_angle_limit_deg",
-            "loop_stall_s",
-            "glove_timeout_s",
-        ):
+    def problems(self) -> list[tuple[str, str]]:
+        """(field, what is wrong) for every field out of range; empty when usable."""
+        out = []
+        for name in ("max_torque_nm", "max_slew_nm_per_s", "soft_angle_limit_deg",
+                     "loop_stall_s", "glove_timeout_s"):  # fmt: skip
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{where}.{name}: must be a finite number > 0, got {v!r}")
+                out.append((name, f"must be a finite number > 0, got {v!r}"))
         if not 0 <= self.fade_zone_deg < self.soft_angle_limit_deg:
-            raise ValueError(
-                f"{where}.fade_zone_deg: must be ≥ 0 and below soft_angle_limit_deg, "
-                f"got {self.fade_zone_deg}"
-            )
+            out.append(("fade_zone_deg", "must be ≥ 0 and below soft_angle_limit_deg, "
+                        f"got {self.fade_zone_deg}"))  # fmt: skip
         if self.brake_damping_nms_per_rad < 0:
-            raise ValueError(f"{where}.brake_damping_nms_per_rad: must be ≥ 0")
+            out.append(("brake_damping_nms_per_rad", "must be ≥ 0"))
+        return out
 
     def kernel_vector(self, fs_hz: float) -> np.ndarray:
         """The numbers ``loop_command`` takes, in SI units per cycle."""

@@ -183,3 +183,42 @@ def test_steerlab_run_and_stop(tmp_path, short_protocol_file, lenient_rig):
     )
     _, err = p.communicate(timeout=60)
     assert p.returncode == 2 and "--resume" in err
+
+
+@pytest.mark.parametrize("how", ["enter", "ctrl-c"])
+def test_emergency_stop_from_the_keyboard(tmp_path, short_protocol_file, lenient_rig, how):
+    """In the terminal running the session: Enter or Ctrl-C stops the motor and the trial."""
+    import pty
+
+    out = tmp_path / "s"
+    master, slave = pty.openpty()
+    p = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--subject", "1", "--out",
+                          str(out), "--protocol", str(short_protocol_file), "--rig", str(lenient_rig)],
+                         cwd=ROOT, stdin=slave, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)  # fmt: skip
+    os.close(slave)
+    try:
+        deadline = time.monotonic() + 60
+        recorded = 0
+        while time.monotonic() < deadline and recorded < 1500:
+            time.sleep(0.1)
+            try:
+                with h5py.File(out / "S01.h5", "r", libver="latest", swmr=True) as f:
+                    for g in f["trials"].values():
+                        if "time_s" in g:
+                            g["time_s"].refresh()
+                            recorded = g["time_s"].shape[0]
+            except (OSError, KeyError):
+                continue
+        assert recorded >= 1500
+        if how == "enter":
+            os.write(master, b"\n")
+        else:
+            p.send_signal(signal.SIGINT)
+        stdout, err = p.communicate(timeout=60)
+    finally:
+        os.close(master)
+    assert p.returncode == 3, err
+    (r,) = SessionFile(out / "S01.h5").records()
+    expected = "keyboard" if how == "enter" else "SIGINT"
+    assert r.status == "aborted" and expected in r.abort_reason
