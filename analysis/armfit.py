@@ -136,6 +136,9 @@ class AdmittanceEstimate(Protocol):
     coherence: np.ndarray
 
 
+WEIGHTINGS = ("paper", "inverse_variance")
+
+
 @dataclass(frozen=True)
 class FitOptions:
     I_i: float = DEFAULT_I_I_KGM2  # fixed value, or the start value when fit_inertia
@@ -148,9 +151,18 @@ class FitOptions:
     # The double-band average is not H at the mean frequency: near the arm's resonance the two
     # differ by ~0.5 %, enough to bias b_c by about 1 % on noise-free data.
     band_mixing: bool = True
+    # "paper": coherence × 1/f (Pronker et al. 2017). "inverse_variance": 1/var(Ĥ) per band,
+    # from the noise at the unexcited bins: far better contact parameters (b_c, k_c) on
+    # simulated data (docs/benchmarks.md, estimator_efficiency), but not the paper's numbers.
+    weighting: str = "paper"
+
+    def __post_init__(self) -> None:
+        if self.weighting not in WEIGHTINGS:
+            raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {self.weighting!r}")
 
     def to_dict(self) -> dict:
         return {
+            "weighting": self.weighting,
             "I_i_kgm2": self.I_i,
             "fit_inertia": self.fit_inertia,
             "n_exclude_low": self.n_exclude_low,
@@ -273,10 +285,16 @@ def fit_arm(estimate: AdmittanceEstimate, options: FitOptions | None = None) -> 
         return np.sum(mix * _H(p, s_bins), axis=-1)
 
     w = np.ones_like(f)
-    if opt.coherence_weighting:
-        w = w * coh
-    if opt.frequency_weighting:
-        w = w / f
+    if opt.weighting == "inverse_variance":
+        var = np.asarray(getattr(estimate, "H_variance", np.full(len(f_all), np.nan)), float)[use]
+        if not np.all(np.isfinite(var) & (var > 0)):
+            raise ValueError("inverse-variance weighting needs the FRF's variance (H_variance)")
+        w = np.nanmedian(var) / var
+    else:
+        if opt.coherence_weighting:
+            w = w * coh
+        if opt.frequency_weighting:
+            w = w / f
     sw = np.sqrt(w)
     fixed = {"I_i": opt.I_i}
 

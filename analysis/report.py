@@ -600,7 +600,9 @@ def _key_numbers(res: StudyResults, records: Sequence[TrialRecord]) -> str:
         (
             "fit weights",
             "coherence × 1/f",
-            ("coherence" if fit.coherence_weighting else "1")
+            "1/var(Ĥ) (inverse variance, from the unexcited bins)"
+            if fit.weighting == "inverse_variance"
+            else ("coherence" if fit.coherence_weighting else "1")
             + (" × 1/f" if fit.frequency_weighting else ""),
         ),
         (

@@ -77,9 +77,12 @@ def _cmd_import(a: argparse.Namespace) -> int:
 
 
 def _cmd_report(a: argparse.Namespace) -> int:
+    from analysis.armfit import FitOptions
     from analysis.report import write_report
+    from analysis.study import AnalysisOptions
 
-    write_report(a.dir, a.out, jobs=a.jobs, progress=Progress("report"))
+    options = AnalysisOptions(fit=FitOptions(weighting=a.weighting))
+    write_report(a.dir, a.out, jobs=a.jobs, progress=Progress("report"), options=options)
     print(f"report written to {Path(a.out) / 'index.html'}")
     return 0
 
@@ -152,6 +155,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("dir")
     r.add_argument("--out", required=True)
     r.add_argument("--jobs", type=int, default=1)
+    r.add_argument(
+        "--weighting",
+        choices=("paper", "inverse_variance"),
+        default="paper",
+        help="arm-fit weights: the paper's coherence × 1/f (default), or 1/var(Ĥ), which "
+        "determines the contact parameters far better (docs/benchmarks.md)",
+    )
     r.set_defaults(func=_cmd_report)
 
     n = sub.add_parser("run", help="run one subject's session on a rig, in real time")
@@ -183,16 +193,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from app.errors import USER_ERRORS
+    from app.errors import is_user_error
 
     try:
         return args.func(args)
-    except USER_ERRORS as e:
-        print(f"steerlab {args.command}: error: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print(f"steerlab {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as e:
+        if not is_user_error(e):
+            raise
+        print(f"steerlab {args.command}: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 if __name__ == "__main__":

@@ -1,19 +1,29 @@
-"""Errors that mean "your input is wrong" (exit 2, one message), not "Steerlab is broken"."""
+"""Errors that mean "your input is wrong" (exit 2, one message), not "Steerlab is broken".
+
+Looked up lazily: a raised error's class comes from a module that is already imported, so the
+command line never imports the analysis (or the hardware) stack just to know its error types.
+"""
 
 from __future__ import annotations
 
-from analysis.report import ReportError
-from app.run import USER_ERRORS as RUN_ERRORS
-from app.simulate import SimulateError
-from protocols.datafile import DataFileError
-from protocols.interchange import InterchangeError
-from protocols.protocol import ProtocolError
+import sys
 
-USER_ERRORS: tuple[type[Exception], ...] = (
-    SimulateError,
-    DataFileError,
-    InterchangeError,
-    ProtocolError,
-    ReportError,
-    *RUN_ERRORS,
+_USER_ERRORS = (
+    ("app.simulate", "SimulateError"),
+    ("app.run", "RunError"),
+    ("protocols.datafile", "DataFileError"),
+    ("protocols.interchange", "InterchangeError"),
+    ("protocols.protocol", "ProtocolError"),
+    ("analysis.report", "ReportError"),
+    ("analysis.diagnosis", "DiagnosisError"),
+    ("hardware.can.config", "ConfigError"),
+    ("hardware.live", "RigError"),
 )
+
+
+def is_user_error(exc: BaseException) -> bool:
+    for module, name in _USER_ERRORS:
+        cls = getattr(sys.modules.get(module), name, None)
+        if isinstance(cls, type) and isinstance(exc, cls):
+            return True
+    return False

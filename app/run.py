@@ -17,8 +17,7 @@ import sys
 import threading
 from pathlib import Path
 
-from hardware.can.config import ConfigError
-from hardware.live import ProcessLoop, RigError
+from hardware.live import ProcessLoop
 from hardware.rig import load_rig
 from protocols.datafile import SessionFile, SessionWriter
 from protocols.engine import SessionEngine, State
@@ -147,5 +146,3 @@ def stop_running(out_dir: str | Path) -> int:
         ) from None
     return pid
 
-
-USER_ERRORS = (RunError, ConfigError, RigError)

@@ -40,7 +40,11 @@ def session_path(out_dir: str | Path, subject: str) -> Path:
 def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | None = None) -> dict:
     """Run one simulated subject's session (or its remaining trials) into its session file."""
     protocol = load_protocol(job.protocol_path)
-    population = make_population(job.subject_number, seed=job.seed)
+    # A world model from `steerlab diagnose` (hardware.sim.model_file) carries its own
+    # per-condition behaviour; the population is drawn around it.
+    population = make_population(
+        job.subject_number, seed=job.seed, nominal=getattr(job.world, "baseline", None)
+    )
     physiology = population[job.subject_number - 1]
     plan = build_plan(protocol, job.subject_number)
     path = session_path(job.out_dir, plan.subject)

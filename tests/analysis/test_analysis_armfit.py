@@ -169,3 +169,13 @@ def test_to_dict_is_json_with_units():
         "b_c_Nms_per_rad",
         "k_c_Nm_per_rad",
     }
+
+
+def test_inverse_variance_weighting_is_an_option_and_checked():
+    import pytest as _pytest
+
+    from analysis.armfit import FitOptions
+
+    with _pytest.raises(ValueError, match="weighting must be one of"):
+        FitOptions(weighting="magic")
+    assert FitOptions(weighting="inverse_variance").to_dict()["weighting"] == "inverse_variance"

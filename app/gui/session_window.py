@@ -1,0 +1,568 @@
+"""The experimenter's window: session, trial list, controls, live plots, quality, status.
+
+Everything here runs on the GUI thread. Engine events arrive through the bridge's one signal
+(:meth:`ExperimenterWindow.on_event`); samples are read from :class:`LiveData` by timers. The
+emergency stop is wired to the button's ``pressed`` signal (it acts on press, not release)
+and calls the controller directly, which calls ``engine.emergency_stop()``: no queue between
+the button and the drive.
+"""
+
+from __future__ import annotations
+
+import html
+import math
+import time
+from pathlib import Path
+
+from PySide6.QtCore import Qt, QTimer
+from PySide6.QtGui import QCloseEvent, QColor, QFont, QKeySequence, QShortcut
+from PySide6.QtWidgets import (
+    QAbstractItemView,
+    QCheckBox,
+    QComboBox,
+    QFormLayout,
+    QGridLayout,
+    QGroupBox,
+    QHBoxLayout,
+    QLabel,
+    QMainWindow,
+    QPushButton,
+    QRadioButton,
+    QSpinBox,
+    QSplitter,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
+
+import app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
+from app.gui.bridge import BridgeFault, EngineBridge
+from app.gui.controller import (
+    ABORTED,
+    DONE,
+    RUNNING,
+    ControlError,
+    RigFactory,
+    SessionController,
+    WorkerFinished,
+    list_sessions,
+    session_path,
+)
+from app.gui.dashboard import DEFAULT_SPAN_DEG, SubjectDashboard
+from app.gui.live_admittance import LiveAdmittancePanel
+from app.gui.livedata import LiveData
+from app.gui.plots import CoherencePlot, LivePlots
+from app.gui.quality import QualityCheck, quality_check
+from protocols import events as ev
+from protocols.protocol import Protocol
+from protocols.session import TrialSpec, subject_id
+
+_STATE_COLOUR = {
+    "pending": "#ffffff",
+    RUNNING: "#fff3b0",
+    DONE: "#c8f0c8",
+    ABORTED: "#f6c6c6",
+}
+
+
+def dashboard_span(protocol: Protocol) -> float:
+    """Half-width of the subject display, degrees: room for the widest boundary."""
+    finite = [c.boundary_deg for c in protocol.conditions if math.isfinite(c.boundary_deg)]
+    return max([DEFAULT_SPAN_DEG] + [1.5 * b for b in finite])
+
+
+def _boundary_text(b: float) -> str:
+    if not math.isfinite(b):
+        return "none"
+    return "centre" if b == 0 else f"±{b:g}°"
+
+
+class ExperimenterWindow(QMainWindow):
+    def __init__(
+        self,
+        protocol: Protocol,
+        data_root: str | Path,
+        *,
+        rig_path: str | None = None,
+        rig_factory: RigFactory | None = None,
+        dashboard: SubjectDashboard | None = None,
+        plot_fps: float = 40.0,
+    ) -> None:
+        super().__init__()
+        self.protocol = protocol
+        self.data_root = Path(data_root)
+        self.setWindowTitle(f"Steerlab — experimenter ({protocol.name})")
+        self.live = LiveData()
+        self.bridge = EngineBridge(self.live, self)
+        self.bridge.connect_to(self.on_event)
+        self.controller = SessionController(
+            protocol, data_root, rig_path=rig_path, rig_factory=rig_factory,
+            subscribers=(self.bridge,),
+        )  # fmt: skip
+        self.dashboard = dashboard or SubjectDashboard(span_deg=dashboard_span(protocol))
+        self.dashboard.angle_source = self._display_angle
+        self.last_quality: QualityCheck | None = None
+        self.events_seen: list[object] = []  # for tests and the log; events are small
+        self._closing = False
+
+        central = QWidget()
+        outer = QVBoxLayout(central)
+        outer.addLayout(self._build_safety_bar())
+        split = QSplitter(Qt.Orientation.Horizontal)
+        split.addWidget(self._build_left())
+        split.addWidget(self._build_right(plot_fps))
+        split.setStretchFactor(0, 0)
+        split.setStretchFactor(1, 1)
+        outer.addWidget(split, 1)
+        self.setCentralWidget(central)
+        self.resize(1400, 900)
+
+        self.status_timer = QTimer(self)
+        self.status_timer.setInterval(500)
+        self.status_timer.timeout.connect(self.refresh_status)
+        self.status_timer.start()
+        self._rate_at = (time.monotonic(), 0)
+        self.plots.start()
+        self._update_order_preview()
+        self._refresh_sessions()
+        self._update_controls()
+
+    # -- layout -----------------------------------------------------------------------------------
+    def _build_safety_bar(self) -> QHBoxLayout:
+        bar = QHBoxLayout()
+        self.estop_button = QPushButton("EMERGENCY STOP")
+        self.estop_button.setMinimumHeight(56)
+        self.estop_button.setMinimumWidth(260)
+        f = QFont()
+        f.setPointSize(16)
+        f.setBold(True)
+        self.estop_button.setFont(f)
+        self.estop_button.setStyleSheet(
+            "QPushButton { background: #d00000; color: white; border-radius: 6px; }"
+            "QPushButton:pressed { background: #800000; }"
+        )
+        self.estop_button.setToolTip("Motor to zero torque and off, trial aborted (Esc)")
+        # pressed, not clicked: act on the press; and straight to the engine, no queue.
+        self.estop_button.pressed.connect(self.emergency_stop)
+        QShortcut(QKeySequence(Qt.Key.Key_Escape), self, self.emergency_stop)
+        self.release_button = QPushButton("Release emergency stop")
+        self.release_button.clicked.connect(self._release_estop)
+        self.state_label = QLabel("no session")
+        sf = QFont()
+        sf.setPointSize(12)
+        self.state_label.setFont(sf)
+        self.alert_label = QLabel("")
+        self.alert_label.setStyleSheet("color: #b00000;")
+        self.alert_label.setWordWrap(True)
+        bar.addWidget(self.estop_button)
+        bar.addWidget(self.release_button)
+        bar.addWidget(self.state_label)
+        bar.addWidget(self.alert_label, 1)
+        return bar
+
+    def _build_left(self) -> QWidget:
+        w = QWidget()
+        w.setMinimumWidth(430)
+        w.setMaximumWidth(560)
+        lay = QVBoxLayout(w)
+        lay.setContentsMargins(0, 0, 0, 0)
+
+        box = QGroupBox("Session")
+        g = QGridLayout(box)
+        self.new_radio = QRadioButton("New, subject")
+        self.resume_radio = QRadioButton("Resume")
+        self.new_radio.setChecked(True)
+        self.subject_spin = QSpinBox()
+        self.subject_spin.setRange(1, 999)
+        self.subject_spin.setValue(self._first_free_subject())
+        self.subject_spin.valueChanged.connect(self._update_order_preview)
+        self.order_label = QLabel("")
+        self.order_label.setWordWrap(True)
+        self.session_combo = QComboBox()
+        self.session_combo.currentIndexChanged.connect(lambda _: self.resume_radio.setChecked(True))
+        self.open_button = QPushButton("Open session")
+        self.open_button.clicked.connect(self.open_session)
+        g.addWidget(self.new_radio, 0, 0)
+        g.addWidget(self.subject_spin, 0, 1)
+        g.addWidget(self.order_label, 1, 0, 1, 2)
+        g.addWidget(self.resume_radio, 2, 0)
+        g.addWidget(self.session_combo, 2, 1)
+        g.addWidget(self.open_button, 3, 0, 1, 2)
+        lay.addWidget(box)
+
+        self.table = QTableWidget(0, 6)
+        self.table.setHorizontalHeaderLabels(
+            ["#", "condition", "trial", "boundary", "state", "att."]
+        )
+        self.table.verticalHeader().setVisible(False)
+        self.table.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
+        self.table.setSelectionMode(QAbstractItemView.SelectionMode.SingleSelection)
+        self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.table.itemSelectionChanged.connect(self._update_controls)
+        hdr = self.table.horizontalHeader()
+        hdr.setStretchLastSection(True)
+        for i, wdt in enumerate((32, 80, 50, 70, 70)):
+            self.table.setColumnWidth(i, wdt)
+        lay.addWidget(self.table, 1)
+
+        ibox = QGroupBox("Instructions (read to the subject)")
+        il = QVBoxLayout(ibox)
+        self.instructions_label = QLabel("—")
+        self.instructions_label.setWordWrap(True)
+        f = QFont()
+        f.setPointSize(12)
+        self.instructions_label.setFont(f)
+        il.addWidget(self.instructions_label)
+        lay.addWidget(ibox)
+
+        btns = QGridLayout()
+        self.start_button = QPushButton("Start trial")
+        self.pause_button = QPushButton("Pause")
+        self.resume_button = QPushButton("Resume")
+        self.abort_button = QPushButton("Abort trial")
+        self.redo_button = QPushButton("Redo selected trial")
+        self.start_button.clicked.connect(lambda: self._do(self.controller.start))
+        self.pause_button.clicked.connect(lambda: self._do(self.controller.pause))
+        self.resume_button.clicked.connect(lambda: self._do(self.controller.resume))
+        self.abort_button.clicked.connect(lambda: self._do(self.controller.abort))
+        self.redo_button.clicked.connect(self._redo_selected)
+        btns.addWidget(self.start_button, 0, 0)
+        btns.addWidget(self.pause_button, 0, 1)
+        btns.addWidget(self.resume_button, 0, 2)
+        btns.addWidget(self.abort_button, 1, 0)
+        btns.addWidget(self.redo_button, 1, 1, 1, 2)
+        lay.addLayout(btns)
+
+        hw = QGroupBox("Hardware")
+        hf = QFormLayout(hw)
+        self.hw_labels: dict[str, QLabel] = {}
+        for key, label in (
+            ("rig", "rig"),
+            ("drive", "drive"),
+            ("glove", "glove stream"),
+            ("rate", "samples"),
+            ("faults", "faults"),
+        ):
+            lb = QLabel("—")
+            lb.setWordWrap(True)
+            self.hw_labels[key] = lb
+            hf.addRow(label, lb)
+        lay.addWidget(hw)
+
+        dbox = QGroupBox("Subject display")
+        dl = QHBoxLayout(dbox)
+        self.screen_combo = QComboBox()
+        for i, s in enumerate(SubjectDashboard.screens()):
+            geo = s.geometry()
+            name = s.name() or f"screen {i + 1}"
+            self.screen_combo.addItem(f"{name} {geo.width()}×{geo.height()}", s)
+        self.fullscreen_check = QCheckBox("full screen")
+        self.show_dashboard_button = QPushButton("Show")
+        self.show_dashboard_button.clicked.connect(self.show_dashboard)
+        dl.addWidget(self.screen_combo, 1)
+        dl.addWidget(self.fullscreen_check)
+        dl.addWidget(self.show_dashboard_button)
+        lay.addWidget(dbox)
+        return w
+
+    def _build_right(self, plot_fps: float) -> QWidget:
+        right = QSplitter(Qt.Orientation.Vertical)
+        self.plots = LivePlots(self.live, fps=plot_fps)
+        right.addWidget(self.plots)
+        bottom = QWidget()
+        bl = QHBoxLayout(bottom)
+        bl.setContentsMargins(0, 0, 0, 0)
+        qbox = QGroupBox("Quality check (last trial)")
+        ql = QVBoxLayout(qbox)
+        self.quality_form = QFormLayout()
+        self.quality_labels: dict[str, QLabel] = {}
+        ql.addLayout(self.quality_form)
+        self.quality_warnings = QLabel("")
+        self.quality_warnings.setStyleSheet("color: #b00000;")
+        self.quality_warnings.setWordWrap(True)
+        ql.addWidget(self.quality_warnings)
+        self.coherence_plot = CoherencePlot()
+        ql.addWidget(self.coherence_plot, 1)
+        bl.addWidget(qbox, 3)
+        self.admittance = LiveAdmittancePanel(self.live)
+        bl.addWidget(self.admittance, 2)
+        right.addWidget(bottom)
+        right.setStretchFactor(0, 3)
+        right.setStretchFactor(1, 2)
+        return right
+
+    # -- session ----------------------------------------------------------------------------------
+    def _first_free_subject(self) -> int:
+        n = 1
+        while session_path(self.data_root, subject_id(n)).exists():
+            n += 1
+        return n
+
+    def _update_order_preview(self) -> None:
+        n = self.subject_spin.value()
+        order = self.controller.preview_order(n)
+        exists = session_path(self.data_root, subject_id(n)).exists()
+        note = "  (file exists: resume it)" if exists else ""
+        self.order_label.setText(f"{subject_id(n)} condition order: {' → '.join(order)}{note}")
+
+    def _refresh_sessions(self) -> None:
+        self.session_combo.blockSignals(True)
+        self.session_combo.clear()
+        for info in list_sessions(self.data_root, self.protocol):
+            text = f"{info.subject}: {info.done}/{info.n_trials} done ({info.path.name})"
+            if not info.same_protocol:
+                text += " — other protocol"
+            self.session_combo.addItem(text, str(info.path))
+        self.session_combo.blockSignals(False)
+
+    def open_session(self) -> None:
+        try:
+            if self.resume_radio.isChecked():
+                path = self.session_combo.currentData()
+                if not path:
+                    raise ControlError(f"no session file to resume in {self.data_root}")
+                self.controller.open_resume(path)
+            else:
+                self.controller.open_new(self.subject_spin.value())
+        except (ControlError, ValueError, OSError) as e:
+            self._alert(str(e))
+            return
+        self._alert("")
+        plan = self.controller.plan
+        assert plan is not None
+        for w in (self.new_radio, self.resume_radio, self.subject_spin, self.session_combo,
+                  self.open_button):  # fmt: skip
+            w.setEnabled(False)
+        self.order_label.setText(
+            f"{plan.subject} (Latin-square row {plan.latin_square_row}): "
+            f"{' → '.join(plan.condition_order)}\nfile: {self.controller.path}"
+        )
+        self._refresh_table()
+        self._show_next()
+        self._update_controls()
+
+    # -- events from the engine (GUI thread) --------------------------------------------------
+    def on_event(self, event: object) -> None:
+        self.events_seen.append(event)
+        c = self.controller
+        if isinstance(event, ev.TrialStarted):
+            c.note_event(event)
+            b = float(event.attributes.get("boundary_deg", math.inf))
+            self.plots.set_boundary(b)
+            self.dashboard.show_condition(event.condition, b)
+            self.dashboard.set_active(True)
+            self._show_next()
+        elif isinstance(event, ev.TrialEnded):
+            self.dashboard.set_active(False, "break")
+            self._quality(event)
+            if event.status != "complete":
+                self._alert(f"trial {event.key} aborted: {event.reason}")
+        elif isinstance(event, ev.TrialMark):
+            self.statusBar().showMessage(f"{event.kind} at sample {event.sample}", 5000)
+        elif isinstance(event, WorkerFinished):
+            if event.error is not None:
+                self._alert(f"engine stopped with an error: {event.error!r}")
+            self._show_next()
+        elif isinstance(event, BridgeFault):
+            self._alert(event.message.splitlines()[0])
+        if isinstance(event, ev.TrialEnded | ev.TrialStarted | ev.TrialSuperseded | ev.StateChanged
+                      | ev.SessionEnded | WorkerFinished):  # fmt: skip
+            self._refresh_table()
+            self._update_controls()
+
+    def _quality(self, end: ev.TrialEnded) -> None:
+        cap = self.live.take_trial(end.key)
+        plan = self.controller.plan
+        if cap is None or plan is None:
+            return
+        a = cap.attributes
+        try:
+            q = quality_check(
+                cap.channels(),
+                key=end.key,
+                condition=cap.condition,
+                status=end.status,
+                fs_hz=float(a["fs_hz"]),
+                measured_start=int(a["measured_start"]),
+                measured_stop=int(a["measured_stop"]),
+                design=plan.design,
+                boundary_deg=float(a.get("boundary_deg", math.inf)),
+                n_planned=cap.n_planned,
+                n_engine=end.n_samples,
+                loop_stats=end.stats,
+            )
+        except Exception as e:  # a figure that cannot be computed must not hide the others
+            self._alert(f"quality check of {end.key} failed: {e!r}")
+            return
+        self.last_quality = q
+        self._show_quality(q)
+
+    def _show_quality(self, q: QualityCheck) -> None:
+        while self.quality_form.rowCount():
+            self.quality_form.removeRow(0)
+        self.quality_labels = {}
+        for label, value in q.rows():
+            lb = QLabel(value)
+            self.quality_labels[label] = lb
+            self.quality_form.addRow(label, lb)
+        self.quality_warnings.setText("; ".join(q.warnings))
+        self.coherence_plot.show_coherence(q.band_frequencies_hz, q.coherence)
+
+    # -- controls ---------------------------------------------------------------------------------
+    def _do(self, action) -> None:
+        try:
+            action()
+        except ControlError as e:
+            self._alert(str(e))
+        self._update_controls()
+
+    def emergency_stop(self) -> None:
+        try:
+            self.controller.emergency_stop()
+        except Exception as e:  # the drive could not be reached: say so as loudly as possible
+            self._alert(f"EMERGENCY STOP FAILED: {e!r} — switch the rig off at the mains")
+        else:
+            self._alert("emergency stop: motor off, trial aborted. Check the subject and the rig.")
+        self._update_controls()
+
+    def _release_estop(self) -> None:
+        self._do(self.controller.release_estop)
+        if not self.controller.estop_latched:
+            self._alert("")
+
+    def _selected_trial(self) -> int | None:
+        rows = self.table.selectionModel().selectedRows() if self.table.selectionModel() else []
+        if not rows:
+            return None
+        item = self.table.item(rows[0].row(), 0)
+        return int(item.text()) if item else None
+
+    def select_trial(self, trial_index: int) -> None:
+        self.table.selectRow(trial_index - 1)
+
+    def _redo_selected(self) -> None:
+        idx = self._selected_trial()
+        if idx is None:
+            self._alert("select the trial to redo in the list")
+            return
+        self._do(lambda: self.controller.redo(idx))
+
+    def _update_controls(self) -> None:
+        c = self.controller
+        open_ = c.is_open
+        in_trial = c.in_trial
+        paused_in_trial = in_trial and c.engine is not None and c.engine.state.value == "paused"
+        self.start_button.setEnabled(c.can_start())
+        self.pause_button.setEnabled(open_ and in_trial and not paused_in_trial)
+        self.resume_button.setEnabled(bool(paused_in_trial) and not c.estop_latched)
+        self.abort_button.setEnabled(open_ and c.worker_alive)
+        sel = self._selected_trial()
+        self.redo_button.setEnabled(
+            open_ and not in_trial and sel is not None and c.engine is not None
+            and c.engine.status_of(sel) == "complete"
+        )  # fmt: skip
+        self.release_button.setVisible(c.estop_latched)
+        self.estop_button.setEnabled(True)  # never disabled
+        if c.engine is None:
+            self.state_label.setText("no session")
+        else:
+            st = c.engine.state.value
+            if c.between_trials:
+                st = "waiting for start"
+            elif paused_in_trial:
+                st = "trial paused"
+            self.state_label.setText(f"engine: {st}")
+
+    def _refresh_table(self) -> None:
+        rows = self.controller.trial_rows()
+        sel = self._selected_trial()
+        self.table.setRowCount(len(rows))
+        for i, r in enumerate(rows):
+            s = r.spec
+            vals = [str(s.trial_index), s.condition, s.label, _boundary_text(s.boundary_deg),
+                    r.state, str(r.attempts)]  # fmt: skip
+            colour = QColor(_STATE_COLOUR.get(r.state, "#ffffff"))
+            for j, v in enumerate(vals):
+                it = self.table.item(i, j)
+                if it is None:
+                    it = QTableWidgetItem()
+                    self.table.setItem(i, j, it)
+                it.setText(v)
+                it.setBackground(colour)
+        if sel is not None:
+            self.table.selectRow(sel - 1)
+
+    def trial_states(self) -> dict[int, str]:
+        """Trial index → state as the list shows it."""
+        return {int(self.table.item(i, 0).text()): self.table.item(i, 4).text()
+                for i in range(self.table.rowCount())}  # fmt: skip
+
+    def _show_next(self) -> None:
+        spec: TrialSpec | None = self.controller.next_trial()
+        if spec is None:
+            self.instructions_label.setText("—" if not self.controller.is_open else "session done")
+            return
+        words = html.escape(spec.instructions)
+        self.instructions_label.setText(
+            f"<b>{html.escape(spec.condition)}</b> — trial {spec.trial_index} ({spec.label}), "
+            f"boundary {_boundary_text(spec.boundary_deg)}<br><br>“{words}”"
+        )
+        if not self.controller.in_trial:
+            self.dashboard.show_condition(spec.condition, spec.boundary_deg)
+            self.plots.set_boundary(spec.boundary_deg)
+
+    # -- status -----------------------------------------------------------------------------------
+    def _display_angle(self) -> float | None:
+        rig = self.controller.rig
+        if rig is not None and rig.display.updates:
+            return rig.display.angle_rad  # straight from the loop, every few cycles
+        # A loop in another process shows nothing here: the newest sample received instead.
+        return self.live.latest("wheel_angle_rad")
+
+    def refresh_status(self) -> None:
+        now, total = time.monotonic(), self.live.total_received
+        t0, n0 = self._rate_at
+        rate = (total - n0) / (now - t0) if now > t0 else 0.0
+        self._rate_at = (now, total)
+        rig = self.controller.rig
+        if rig is None:
+            return
+        try:
+            st = rig.status()
+        except Exception as e:  # a status read must not take the window down
+            self.hw_labels["faults"].setText(f"status unavailable: {e!r}")
+            return
+        self.hw_labels["rig"].setText(st.get("rig", rig.name))
+        self.hw_labels["drive"].setText(st.get("drive_state", "?"))
+        g = st.get("glove_rate_hz")
+        self.hw_labels["glove"].setText(
+            f"{g:.0f} frames/s" if g is not None else st.get("glove_note", "—")
+        )
+        self.hw_labels["rate"].setText(f"{rate:.0f} /s received")
+        faults = st.get("faults") or []
+        self.hw_labels["faults"].setText("; ".join(faults) if faults else "none")
+        self.hw_labels["faults"].setStyleSheet("color: #b00000;" if faults else "")
+        self._update_controls()
+
+    def _alert(self, text: str) -> None:
+        self.alert_label.setText(text)
+
+    # -- subject display --------------------------------------------------------------------------
+    def show_dashboard(self) -> None:
+        screen = self.screen_combo.currentData()
+        self.dashboard.show_on(screen, self.fullscreen_check.isChecked())
+
+    # -- closing ----------------------------------------------------------------------------------
+    def closeEvent(self, event: QCloseEvent) -> None:  # noqa: N802 (Qt's name)
+        if not self._closing:
+            self._closing = True
+            self.plots.stop()
+            self.status_timer.stop()
+            try:
+                # Abort a running trial ("window closed"); the writer keeps every sample.
+                self.controller.shutdown("window closed")
+            except ControlError as e:
+                self._alert(str(e))
+            self.dashboard.close()
+        event.accept()
