@@ -122,6 +122,22 @@ def test_bad_rig_file_fails_to_come_up_with_its_reason(tmp_path):
         ProcessLoop(str(bad), 1)
 
 
+def wait_for_samples(path, n: int, deadline: float) -> bool:
+    """Wait until a running session (another process) has flushed n samples of a trial."""
+    while time.monotonic() < deadline:
+        time.sleep(0.1)
+        try:  # SWMR: read while the other process writes
+            with h5py.File(path, "r", libver="latest", swmr=True) as f:
+                for g in f["trials"].values():
+                    if "time_s" in g:
+                        g["time_s"].refresh()
+                        if g["time_s"].shape[0] >= n:
+                            return True
+        except (OSError, KeyError):
+            continue
+    return False
+
+
 def _steerlab(*args, **kw):
     return subprocess.Popen(
         [sys.executable, "-m", "app.cli", *map(str, args)],
@@ -141,18 +157,7 @@ def test_steerlab_run_and_stop(tmp_path, short_protocol_file, lenient_rig):
     pidfile = out / "steerlab-run.pid"
     deadline = time.monotonic() + 60
     # Stop it from "another terminal" once the first trial is under way.
-    recorded = 0
-    while time.monotonic() < deadline and recorded < 1500:
-        time.sleep(0.1)
-        try:  # read what the running session has flushed so far (SWMR)
-            with h5py.File(out / "S01.h5", "r", libver="latest", swmr=True) as f:
-                for g in f["trials"].values():
-                    if "time_s" in g:
-                        g["time_s"].refresh()
-                        recorded = g["time_s"].shape[0]
-        except (OSError, KeyError):
-            continue
-    assert pidfile.exists() and recorded >= 1500
+    assert wait_for_samples(out / "S01.h5", 1500, deadline) and pidfile.exists()
     s = _steerlab("stop", "--out", out)
     assert s.wait(30) == 0, s.stderr.read()
     _, err = p.communicate(timeout=60)
@@ -192,25 +197,30 @@ def test_emergency_stop_from_the_keyboard(tmp_path, short_protocol_file, lenient
 
     out = tmp_path / "s"
     master, slave = pty.openpty()
-    p = subprocess.Popen([sys.executable, "-m", "app.cli", "run", "--subject", "1", "--out",
-                          str(out), "--protocol", str(short_protocol_file), "--rig", str(lenient_rig)],
-                         cwd=ROOT, stdin=slave, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True)  # fmt: skip
+    p = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "app.cli",
+            "run",
+            "--subject",
+            "1",
+            "--out",
+            str(out),
+            "--protocol",
+            str(short_protocol_file),
+            "--rig",
+            str(lenient_rig),
+        ],
+        cwd=ROOT,
+        stdin=slave,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     os.close(slave)
     try:
-        deadline = time.monotonic() + 60
-        recorded = 0
-        while time.monotonic() < deadline and recorded < 1500:
-            time.sleep(0.1)
-            try:
-                with h5py.File(out / "S01.h5", "r", libver="latest", swmr=True) as f:
-                    for g in f["trials"].values():
-                        if "time_s" in g:
-                            g["time_s"].refresh()
-                            recorded = g["time_s"].shape[0]
-            except (OSError, KeyError):
-                continue
-        assert recorded >= 1500
+        assert wait_for_samples(out / "S01.h5", 1500, time.monotonic() + 60)
         if how == "enter":
             os.write(master, b"\n")
         else:

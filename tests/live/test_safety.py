@@ -15,8 +15,13 @@ from hardware.sim.physiology import NOMINAL
 from hardware.sim.world import World, WorldConfig
 from tests.helpers import ROOT
 
-LIM = SafetyLimits(max_torque_nm=8.0, max_slew_nm_per_s=400.0, soft_angle_limit_deg=90.0,
-                   fade_zone_deg=15.0, brake_damping_nms_per_rad=5.0)
+LIM = SafetyLimits(
+    max_torque_nm=8.0,
+    max_slew_nm_per_s=400.0,
+    soft_angle_limit_deg=90.0,
+    fade_zone_deg=15.0,
+    brake_damping_nms_per_rad=5.0,
+)
 S = LIM.kernel_vector(1000.0)
 
 
@@ -72,10 +77,14 @@ def test_limits_hold_in_a_simulated_trial_with_an_excessive_perturbation():
 def test_rig_file_errors_name_file_section_and_field(tmp_path):
     base = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
     cases = {
-        "glove port": (base.replace('port = "simulated"', 'port = 3'), r"\[glove\] port"),
-        "calibration": (base.replace("gain_n_per_count = 0.01\noffset_counts = 0\n[glove.calibration.right]",
-                                     "offset_counts = 0\n[glove.calibration.right]"),
-                        r"\[glove.calibration\].*gain_n_per_count"),
+        "glove port": (base.replace('port = "simulated"', "port = 3"), r"\[glove\] port"),
+        "calibration": (
+            base.replace(
+                "gain_n_per_count = 0.01\noffset_counts = 0\n[glove.calibration.right]",
+                "offset_counts = 0\n[glove.calibration.right]",
+            ),
+            r"\[glove.calibration\].*gain_n_per_count",
+        ),
         "safety": (base.replace("max_torque_nm = 8.0", "max_torque_nm = -1"), r"\[safety\]"),
         "stall": (base.replace("loop_stall_s = 0.02", "loop_stall_s = 0"), r"loop_stall_s"),
         "unknown table": (base + "\n[displayy]\nx = 1\n", r"displayy.*unknown table"),
