@@ -27,7 +27,13 @@ import can
 import numpy as np
 import serial
 
-from hardware.can import CiA402Drive, SimulatedDrive, open_bus
+from hardware.can import (
+    CiA402Drive,
+    SharedPlant,
+    SimulatedDrive,
+    SimulatedTorqueSensor,
+    open_bus,
+)
 from hardware.glove.unit import SerialGloveUnit
 from hardware.loop import DeviceLoop
 from hardware.rig import RigConfig, load_rig
@@ -89,6 +95,7 @@ class RigDevices:
         self.rig = rig
         self.plant: WorldPlant | None = None
         self.node: SimulatedDrive | None = None
+        self.sensor_node: SimulatedTorqueSensor | None = None
         self.glove_sim = None
         self.physiology: dict | None = None
         self._buses: list[can.BusABC] = []
@@ -116,8 +123,18 @@ class RigDevices:
                     interface="virtual", channel=drive_cfg.channel, receive_own_messages=False
                 )
                 self._buses.append(node_bus)
-                self.node = SimulatedDrive(node_bus, drive_cfg, self.plant)
+                sensor_node = drive_cfg.torque_sensor.source == "node"
+                # A sensor node reads the plant on its own thread: both nodes go through one
+                # SharedPlant, which the drive node alone steps.
+                plant = SharedPlant(self.plant) if sensor_node else self.plant
+                self.node = SimulatedDrive(node_bus, drive_cfg, plant)
                 self.node.start()
+                if sensor_node:
+                    sensor_bus = can.Bus(
+                        interface="virtual", channel=drive_cfg.channel, receive_own_messages=False
+                    )
+                    self._buses.append(sensor_bus)
+                    self.sensor_node = SimulatedTorqueSensor(sensor_bus, drive_cfg, plant)
                 self.glove_sim = SimulatedGloveUnit(self.plant.grip, rig.glove.calibration).start()
                 port = self.glove_sim.port
             self.drive_config = drive_cfg
@@ -215,6 +232,7 @@ class RigDevices:
             lambda: self.glove and self.glove.close(),
             lambda: self.glove_sim and self.glove_sim.close(),
             lambda: self.node and self.node.close(),
+            lambda: self.sensor_node and self.sensor_node.close(),
         ):
             try:
                 closer()

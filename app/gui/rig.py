@@ -119,10 +119,11 @@ def _lab_status(loop: Any, name: str) -> Callable[[], RigStatus]:
             rig=name,
             simulated=False,
             drive_state=str(raw.get("drive_state", "unknown")),
-            drive_enabled=bool(raw.get("drive_ok", False)),
+            drive_enabled=bool(raw.get("drive_enabled", False)),
             glove_rate_hz=float(glove) if glove is not None else None,
             glove_note="no frames yet" if glove is None else "",
-            faults=[str(f) for f in raw.get("faults", [])],
+            faults=[str(f) for f in raw.get("faults", [])]
+            + ([] if raw.get("drive_ok", True) else ["drive not ready"]),
         )
 
     return status

@@ -1,5 +1,6 @@
 """CAN drive stack: a CiA 402 servo drive over CANopen (python-can + canopen), its rig
-configuration, and a simulated drive node that answers the same protocol on a virtual bus.
+configuration, and a simulated drive node that answers the same protocol on a virtual bus (plus
+a simulated column torque sensor node for ``[drive.torque_sensor] source = "node"``).
 
 Typical use::
 
@@ -29,9 +30,10 @@ from .config import (
     drive_config_from_dict,
     load_drive_config,
 )
-from .frames import Emcy, FrameError, NmtState, State402
+from .frames import Emcy, FrameError, NmtState, SensorFrame, State402
 from .scaling import DriveScaling
 from .sim_node import Plant, SimulatedDrive, build_object_dictionary
+from .sim_sensor import SharedPlant, SimulatedTorqueSensor
 from .transport import BusReader, driver_filters, open_bus
 
 __all__ = [
@@ -51,7 +53,10 @@ __all__ = [
     "Plant",
     "SafetyConfig",
     "SdoWrite",
+    "SensorFrame",
+    "SharedPlant",
     "SimulatedDrive",
+    "SimulatedTorqueSensor",
     "State402",
     "TorqueSensorConfig",
     "build_object_dictionary",

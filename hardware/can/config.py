@@ -20,10 +20,19 @@ VelocityUnit = Literal["counts_per_s", "rpm"]
 
 CAN_BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
 
+
+
+def _frame_bits(data_bytes: int) -> int:
+    """Worst-case bits of one standard data frame: 47 bits of overhead + data + bit stuffing."""
+    return 47 + 8 * data_bytes + (34 + 8 * data_bytes - 1) // 4
+
+
 # Worst-case bits of one control cycle on the wire: RPDO (4 data bytes) + SYNC (0) + TPDO1 (8) +
-# TPDO2 (8), each frame 47 bits of overhead + data + worst-case bit stuffing. Used to refuse a
-# bitrate that cannot carry the loop; the real bus also carries heartbeats and any other nodes.
-_CYCLE_BITS = sum(47 + 8 * n + (34 + 8 * n - 1) // 4 for n in (4, 0, 8, 8))
+# TPDO2 (8). Used to refuse a bitrate that cannot carry the loop; the real bus also carries
+# heartbeats and any other nodes. A torque sensor node adds its frame (counted as 8 bytes: we do
+# not know how long the sensor's own frame is).
+_CYCLE_BITS = sum(_frame_bits(n) for n in (4, 0, 8, 8))
+_SENSOR_FRAME_BITS = _frame_bits(8)
 MAX_BUS_LOAD = 0.8
 
 _PYTHON = "<python>"
@@ -54,8 +63,12 @@ class TorqueSensorConfig:
 
     - ``"pdo"``: the drive samples the sensor and maps it into its TPDO2 (object ``index``:
       ``subindex``, ``bits`` wide, signed); value in N·m = ``sign * nm_per_count * raw``.
-    - ``"node"``: a separate CAN node sends it in its own frame ``cob_id`` (designed for, not
-      implemented yet: the driver refuses it with ``NotImplementedError``).
+    - ``"node"``: a separate CAN node ``node_id`` (e.g. a strain-gauge amplifier) sends it on
+      every SYNC in its own frame ``cob_id`` (default 0x180 + ``node_id``, its TPDO1): a signed
+      little-endian integer of ``bits`` at ``byte_offset``; same scaling. The host starts the
+      node (NMT start) at enable() and writes nothing else to it. With
+      ``heartbeat_timeout_ms`` > 0 the node's own heartbeat is watched as well (0: the node
+      produces none, or it is not watched).
     - ``"none"``: no column torque sensor.
 
     Sign convention: positive = the torque the wheel exerts on the hands towards positive angle.
@@ -70,6 +83,14 @@ class TorqueSensorConfig:
     node_id: int | None = None
     cob_id: int | None = None
     byte_offset: int = 0
+    heartbeat_timeout_ms: int = 0
+
+    @property
+    def frame_cob_id(self) -> int | None:
+        """COB-ID of the sensor node's frame (``source = "node"`` only, else None)."""
+        if self.source != "node" or self.node_id is None:
+            return None
+        return self.cob_id if self.cob_id is not None else 0x180 + self.node_id
 
 
 @dataclass(frozen=True)
@@ -129,9 +150,16 @@ class DriveConfig:
         return round(self.safety.max_torque_nm / (self.gear_ratio * self.rated_torque_nm) * 1000)
 
     @property
+    def cycle_bits(self) -> int:
+        """Worst-case bits one control cycle puts on the bus (with the sensor node's frame)."""
+        node = isinstance(self.torque_sensor, TorqueSensorConfig) and \
+            self.torque_sensor.source == "node"
+        return _CYCLE_BITS + (_SENSOR_FRAME_BITS if node else 0)
+
+    @property
     def bus_load(self) -> float:
         """Worst-case fraction of the bus the control cycle uses at ``loop_rate_hz``."""
-        return _CYCLE_BITS * self.loop_rate_hz / self.bitrate
+        return self.cycle_bits * self.loop_rate_hz / self.bitrate
 
 
 def load_drive_config(path: str | Path) -> DriveConfig:
@@ -276,9 +304,9 @@ def _validate(cfg: DriveConfig) -> None:
     if not isinstance(cfg.torque_sensor, TorqueSensorConfig):
         raise ConfigError(src, "drive.torque_sensor", None, "expected a table")
     if cfg.bus_load > MAX_BUS_LOAD:
-        need = math.ceil(_CYCLE_BITS * rate / MAX_BUS_LOAD)
+        need = math.ceil(cfg.cycle_bits * rate / MAX_BUS_LOAD)
         raise c.fail("bitrate",
-                     f"{cfg.bitrate} bit/s cannot carry one control cycle (~{_CYCLE_BITS} bits) "
+                     f"{cfg.bitrate} bit/s cannot carry one control cycle (~{cfg.cycle_bits} bits) "
                      f"at loop_rate_hz {rate:g} within {MAX_BUS_LOAD:.0%} bus load "
                      f"(needs ≥ {need} bit/s)")
 
@@ -303,9 +331,37 @@ def _validate(cfg: DriveConfig) -> None:
         t.int_("index", 0x2000, 0x9FFF)
         t.int_("subindex", 0, 0xFE)
     else:
-        sensor_id = t.int_("node_id", 1, 127)
-        if sensor_id == node_id:
-            raise t.fail("node_id", f"must differ from the drive's [drive] node_id {node_id}")
-        if cfg.torque_sensor.cob_id is not None:
-            t.int_("cob_id", 0x001, 0x7FF)
-        t.int_("byte_offset", 0, 8 - cfg.torque_sensor.bits // 8)
+        _validate_sensor_node(t, cfg.torque_sensor, node_id)
+
+
+def _validate_sensor_node(t: _Check, sensor: TorqueSensorConfig, drive_id: int) -> None:
+    if sensor.node_id is None:
+        raise t.fail("node_id", "required for source = 'node': the sensor's CANopen node id "
+                     "(1..127)")
+    sensor_id = t.int_("node_id", 1, 127)
+    if sensor_id == drive_id:
+        raise t.fail("node_id", f"must differ from the drive's [drive] node_id {drive_id}")
+    if sensor.cob_id is not None:
+        cob_id = t.int_("cob_id", 0x001, 0x7FF)
+        # The driver dispatches frames by COB-ID alone: a sensor frame on one of these would be
+        # taken for (or hide) the drive's frame, or a SYNC / NMT command.
+        taken = {
+            0x000: "NMT", 0x080: "SYNC",
+            0x080 + drive_id: "the drive's EMCY", 0x180 + drive_id: "the drive's TPDO1",
+            0x280 + drive_id: "the drive's TPDO2", 0x200 + drive_id: "the drive's RPDO1",
+            0x580 + drive_id: "the drive's SDO response",
+            0x600 + drive_id: "the drive's SDO request",
+            0x700 + drive_id: "the drive's heartbeat",
+            0x700 + sensor_id: "the sensor's own heartbeat",
+        }
+        if cob_id in taken:
+            raise t.fail("cob_id", f"0x{cob_id:03X} is already used by {taken[cob_id]}")
+    size = sensor.bits // 8
+    offset = sensor.byte_offset
+    if isinstance(offset, bool) or not isinstance(offset, int):
+        raise t.fail("byte_offset", f"expected an integer, {t.got('byte_offset')}")
+    if not 0 <= offset <= 8 - size:
+        raise t.fail("byte_offset",
+                     f"a {sensor.bits}-bit value at byte_offset {offset} does not fit in an "
+                     f"8-byte CAN frame (byte_offset must be 0..{8 - size})")
+    t.int_("heartbeat_timeout_ms", 0)

@@ -1,8 +1,8 @@
 """CANopen frame layouts used by the drive stack (CiA 301 communication, CiA 402 drive profile).
 
 Pure functions and constants, shared by the driver (:mod:`hardware.can.cia402`) and the simulated
-drive (:mod:`hardware.can.sim_node`) so both sides read the same bytes the same way. Parsers
-raise only :class:`FrameError` on malformed payloads.
+nodes (:mod:`hardware.can.sim_node`, :mod:`hardware.can.sim_sensor`) so both sides read the same
+bytes the same way. Parsers raise only :class:`FrameError` on malformed payloads.
 
 COB-IDs (11-bit, predefined connection set, node id ``n``):
 
@@ -15,6 +15,8 @@ RPDO1           0x200 + n
 SDO response    0x580 + n
 SDO request     0x600 + n
 Heartbeat       0x700 + n     [NMT state]
+Torque sensor   0x180 + s     sensor node ``s`` (``[drive.torque_sensor] source = "node"``):
+                (or cob_id)   signed value, 16 or 32 bit little-endian, at byte_offset
 ==============  ============  ==============================================
 """
 
@@ -216,6 +218,52 @@ class PdoLayout:
     def __repr__(self) -> str:
         names = ", ".join(o.name or f"0x{o.index:04X}:{o.subindex:02X}" for o in self.objects)
         return f"PdoLayout({names})"
+
+
+@dataclass(frozen=True)
+class SensorFrame:
+    """The frame of a column torque sensor node: a signed little-endian integer of ``bits``
+    (16 or 32) starting at byte ``byte_offset``. Other bytes (status, other channels of the
+    amplifier) are not read; when encoding (the simulated sensor) they are zero.
+
+    :raises ValueError: at construction, if the value does not fit in 8 bytes.
+    """
+
+    byte_offset: int
+    bits: int
+
+    def __post_init__(self) -> None:
+        if self.bits not in (16, 32):
+            raise ValueError(f"sensor value must be 16 or 32 bits, got {self.bits}")
+        if not 0 <= self.byte_offset <= 8 - self.bits // 8:
+            raise ValueError(f"a {self.bits}-bit value at byte {self.byte_offset} does not fit "
+                             "in 8 bytes")
+
+    @property
+    def size(self) -> int:
+        """Bytes up to the end of the value: the shortest frame that carries it."""
+        return self.byte_offset + self.bits // 8
+
+    def decode(self, data: bytes | bytearray) -> int:
+        """The raw value. Trailing bytes after it are ignored, as in a PDO.
+
+        :raises FrameError: the frame ends before the value does.
+        """
+        if len(data) < self.size:
+            raise FrameError(f"sensor frame has {len(data)} bytes, the value needs "
+                             f"{self.size} ({self.bits} bits at byte {self.byte_offset})")
+        return int.from_bytes(data[self.byte_offset:self.size], "little", signed=True)
+
+    def encode(self, raw: int) -> bytes:
+        """``size`` bytes: zeros, then the value.
+
+        :raises FrameError: ``raw`` does not fit in ``bits`` signed bits.
+        """
+        try:
+            value = raw.to_bytes(self.bits // 8, "little", signed=True)
+        except OverflowError:
+            raise FrameError(f"{raw} does not fit in a signed {self.bits}-bit value") from None
+        return bytes(self.byte_offset) + value
 
 
 CONTROLWORD_OBJ = MappedObject(CONTROLWORD, 0, 16, False, "controlword")

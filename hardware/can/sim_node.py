@@ -16,6 +16,10 @@ hardware the values read after sync() are one sample older than in this simulati
 Fault injection for tests: :meth:`SimulatedDrive.stop_heartbeat`, :meth:`~SimulatedDrive.go_silent`
 (the drive disappears), :meth:`~SimulatedDrive.inject_fault` (EMCY + FAULT state),
 ``refuse_enable`` (stays SWITCHED ON), ``mute_pdo`` (SYNCs go unanswered).
+
+With ``[drive.torque_sensor] source = "node"`` the column torque comes from a node of its own
+(:mod:`hardware.can.sim_sensor`); the drive then still steps the plant, through the
+:class:`~hardware.can.sim_sensor.SharedPlant` both nodes read.
 """
 
 from __future__ import annotations

@@ -26,14 +26,17 @@ log = logging.getLogger(__name__)
 
 def driver_filters(config: DriveConfig) -> list[can.typechecking.CanFilter]:
     """Acceptance filters for the host: only what the drive sends (EMCY, TPDO1/2, SDO answers,
-    heartbeat). On hardware interfaces the filtering happens in the controller or kernel, which
-    keeps other nodes' traffic out of the Python receive thread."""
+    heartbeat) and, with a torque sensor node, its frame (and its heartbeat if watched). On
+    hardware interfaces the filtering happens in the controller or kernel, which keeps other
+    nodes' traffic out of the Python receive thread."""
     n = config.node_id
     ids = [emcy_cob_id(n), tpdo_cob_id(1, n), tpdo_cob_id(2, n), sdo_tx_cob_id(n),
            heartbeat_cob_id(n)]
     sensor = config.torque_sensor
     if sensor.source == "node":
-        ids.append(sensor.cob_id if sensor.cob_id is not None else tpdo_cob_id(1, sensor.node_id))
+        ids.append(sensor.frame_cob_id)
+        if sensor.heartbeat_timeout_ms > 0:
+            ids.append(heartbeat_cob_id(sensor.node_id))
     return [{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in ids]
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
@@ -147,7 +148,8 @@ def test_config_built_in_code_is_validated_too():
         DriveConfig(1, "virtual", "x", 1_000_000, 4096, 1.0, 1.0, 2, SafetyConfig(1, 1, 1))
 
 
-def test_node_torque_sensor_is_designed_but_not_implemented(tmp_path):
+def test_node_torque_sensor_config_reaches_the_driver(tmp_path):
+    # Behaviour of source = "node": tests/hardware/test_can_sensor_node.py
     text = edit(GOOD, 'source = "pdo"', 'source = "node"\nnode_id = 9\ncob_id = 0x189')
     text = edit(text, "index = 0x2001\nsubindex = 2\n", "")
     text = edit(text, 'interface = "socketcan"\nchannel = "can0"',
@@ -156,8 +158,8 @@ def test_node_torque_sensor_is_designed_but_not_implemented(tmp_path):
     assert {"can_id": 0x189, "can_mask": 0x7FF, "extended": False} in driver_filters(cfg)
     bus = can.Bus(interface="virtual", channel="cfg-node-sensor")
     try:
-        with pytest.raises(NotImplementedError, match="source = 'node'"):
-            CiA402Drive(bus, cfg)
+        with CiA402Drive(bus, cfg) as drive:
+            assert math.isnan(drive.torque_sensor.read())  # no sensor frame yet
     finally:
         bus.shutdown()
 

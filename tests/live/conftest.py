@@ -54,7 +54,7 @@ def rig_config():
     # The test process is not real-time tuned and shares the CPU with other tests: allow late
     # cycles here, so that each fault test sees its own fault (the stall test sets its own).
     rig = load_rig()
-    return replace(rig, safety=replace(rig.safety, loop_stall_s=0.5))
+    return replace(rig, safety=replace(rig.safety, loop_stall_s=0.5, glove_timeout_s=1.0))
 
 
 @pytest.fixture
