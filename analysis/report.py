@@ -38,6 +38,7 @@ from analysis.pipeline import (
     PARAMETER_UNITS,
     STAT_QUANTITIES,
     StudyResults,
+    json_clean,
     load_directory,
     provenance,
     run_analysis,
@@ -141,13 +142,24 @@ def write_report(
     )
     timings.update(res.timings_s)
     res.timings_s = timings
+    tracking = None
+    if any(r.attrs.get("schedule") for r in records):
+        # Only studies with time-varying trials get the tracking section (analysis.tracking).
+        from analysis.tracking.report_section import analyse_tracking
+
+        t0 = time.perf_counter()
+        tracking = analyse_tracking(records)
+        timings["tracking"] = time.perf_counter() - t0
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
         step(RESULTS_JSON)
         t0 = time.perf_counter()
-        text = json.dumps(res.to_dict(), allow_nan=False, ensure_ascii=False, indent=1)
+        doc = res.to_dict()
+        if tracking is not None:
+            doc["tracking"] = json_clean(tracking.to_dict())
+        text = json.dumps(doc, allow_nan=False, ensure_ascii=False, indent=1)
         (tmp / RESULTS_JSON).write_text(text + "\n", encoding="utf-8")
         step(PER_SUBJECT_CSV)
         write_per_subject_csv(res, tmp / PER_SUBJECT_CSV)
@@ -157,9 +169,22 @@ def write_report(
         images = render_figures(res, records, on_figure=step) if figures else {}
         timings["figures"] = time.perf_counter() - t0
 
+        extra = []
+        if tracking is not None:
+            from analysis import figures as F
+            from analysis.tracking.report_section import figure, html_section
+
+            fig = figure(tracking) if figures else None
+            uri = None
+            if fig is not None:
+                import matplotlib.pyplot as plt
+
+                uri = F.png_data_uri(fig)
+                plt.close(fig)
+            extra.append(html_section(tracking, uri))
         step(INDEX_HTML)
         t0 = time.perf_counter()
-        page = html_page(res, images, records)
+        page = html_page(res, images, records, extra_sections=extra)
         (tmp / INDEX_HTML).write_text(page, encoding="utf-8")
         timings["write_html"] = time.perf_counter() - t0
         _install(tmp, out)
@@ -425,9 +450,14 @@ def _figure(images: dict[str, str | None], name: str, caption: str) -> str:
 
 
 def html_page(
-    res: StudyResults, images: dict[str, str | None], records: Sequence[TrialRecord]
+    res: StudyResults,
+    images: dict[str, str | None],
+    records: Sequence[TrialRecord],
+    extra_sections: Sequence[str] = (),
 ) -> str:
-    """The report page; ``images`` from :func:`render_figures` (empty: no figures)."""
+    """The report page; ``images`` from :func:`render_figures` (empty: no figures);
+    ``extra_sections``: HTML sections placed before the skipped trials (the tracking section
+    of a study with time-varying trials)."""
     prov = res.provenance
     n_ok = sum(c.passed is True for c in res.checks)
     n_diff = sum(c.passed is False for c in res.checks)
@@ -494,6 +524,7 @@ def html_page(
         _loo_table(res),
         _anova_table(res),
         _pairwise_tables(res),
+        *extra_sections,
         _skipped_section(res),
         _notes_section(res),
         _provenance_section(res),

@@ -215,7 +215,12 @@ def epsilon_hf(values: np.ndarray) -> float:
     if d <= 1:
         return 1.0
     gg = epsilon_gg(values)
-    return float(min((n * d * gg - 2) / (d * (n - 1 - d * gg)), 1.0))
+    denominator = d * (n - 1 - d * gg)
+    if not denominator > 0:
+        # Too few subjects for the Huynh–Feldt correction (e.g. 2): it is undefined, and
+        # the upper bound 1 is what every implementation falls back to.
+        return 1.0
+    return float(min((n * d * gg - 2) / denominator, 1.0))
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,10 @@ drive fault/EMCY, CAN send failure, glove stream stopped or broken); a cycle lat
 ``SafetyLimits.loop_stall_s``. In real time a watchdog thread also quick-stops the drive if the
 loop itself hangs.
 
+Time-varying trials (``setup.schedule``): the display is told each change of task at its sample.
+``sample_extras``, if given, is read once per cycle (after the sensors) and its values are logged
+as extra channels (the simulated rig's true arm parameters).
+
 Pause: with ``pause_fades_out`` (a real rig, where time cannot stop) the perturbation fades out
 and the trial ends as aborted, to be run again; without it (the simulated rig) the loop simply
 waits, with the simulated world, until the engine asks for the next block.
@@ -23,7 +27,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -65,8 +69,10 @@ class DeviceLoop:
         pause_fades_out: bool = False,
         clock: Callable[[], float] = time.perf_counter,
         safety: SafetyLimits | None = None,
+        sample_extras: Callable[[], Mapping[str, float]] | None = None,
     ) -> None:
         self.drive, self.sensor, self.glove, self.display = drive, torque_sensor, glove, display
+        self.sample_extras = sample_extras
         self.realtime = realtime
         self.block_s = block_s
         self.trial_hooks = list(trial_hooks)
@@ -79,6 +85,7 @@ class DeviceLoop:
         self._stats: dict = {}
         warm_up()
         self._last_cycle = 0.0
+        self._suspended = False
         self._stall: str | None = None
 
     def emergency_stop(self) -> None:
@@ -97,6 +104,8 @@ class DeviceLoop:
         """Quick-stop the drive if the loop stops cycling (it is stuck, not merely late)."""
         limit = self.safety.loop_stall_s
         while not stop.wait(limit / 4):
+            if self._suspended:
+                continue  # a simulated rig waiting, with its world, for the engine
             late = self.clock() - self._last_cycle
             if late > limit and self._stall is None:
                 self._stall = f"control loop stalled: no cycle for {late * 1e3:.1f} ms"
@@ -111,6 +120,11 @@ class DeviceLoop:
             hook(setup)
         if self.display is not None:
             self.display.show_condition(setup.spec.condition, setup.spec.boundary_deg)
+        changes = []
+        if setup.schedule is not None and self.display is not None:
+            changes = setup.schedule.display_changes()[1:]  # the first is shown above
+        next_change = changes[0][0] if changes else -1
+        extras_of = self.sample_extras
         fs = setup.fs_hz
         period = 1.0 / fs
         n_total = setup.n_samples
@@ -173,6 +187,11 @@ class DeviceLoop:
                     g = self.glove.latest()
                     if g is None:
                         raise TrialFault("no grip-force reading from the glove unit")
+                    if extras_of is not None:
+                        for name, v in extras_of().items():
+                            if name not in buf:
+                                buf[name] = np.empty(m)
+                            buf[name][j] = v
                     tp = tp_all[k + j]
                     if fade < 1.0 or (self.pause_fades_out and control.paused.is_set()):
                         fade = max(0.0, fade - fade_step)
@@ -192,6 +211,10 @@ class DeviceLoop:
                     buf["grip_force_N"][j] = g.left_n + g.right_n
                     if self.display is not None and (k + j) % 20 == 0:
                         self.display.show_angle(r.angle_rad)
+                    if k + j == next_change:
+                        _, cond, bd = changes.pop(0)
+                        self.display.show_condition(cond, bd)
+                        next_change = changes[0][0] if changes else -1
                     if fade == 0.0:
                         # Faded out for a pause: end here; the trial is run again later.
                         k += j + 1
@@ -200,9 +223,20 @@ class DeviceLoop:
                             "paused mid-trial by the experimenter; run the trial again"
                         )
                 k += m
+                t_yield = self.clock()
+                # Only a loop whose world waits with it (simulated) may be suspended; a real
+                # rig's loop is consumed continuously (ProcessLoop), so there the watchdog stays.
+                self._suspended = not self.pause_fades_out
                 yield buf
+                self._suspended = False
                 if control.stop_requested:
                     return
+                suspended = self.clock() - t_yield
+                if self.realtime and not self.pause_fades_out and suspended > 2 * period:
+                    # A simulated rig waits with its world while the engine is paused: carry on
+                    # from now rather than running the missed cycles back to back.
+                    t0 += suspended
+                    self._last_cycle = self.clock()
         finally:
             watchdog_stop.set()
             # Whatever ended the trial: no torque on the wheel, power stage off.

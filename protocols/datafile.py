@@ -45,6 +45,12 @@ UNITS = {
     "grip_force_N": "N",
     "grip_force_left_N": "N",
     "grip_force_right_N": "N",
+    # Simulated time-varying trials only: the driver's true parameters (hardware.sim.world).
+    "true_b_i_Nms_per_rad": "N·m·s/rad",
+    "true_k_i_Nm_per_rad": "N·m/rad",
+    "true_b_c_Nms_per_rad": "N·m·s/rad",
+    "true_k_c_Nm_per_rad": "N·m/rad",
+    "true_grip_mean_N": "N",
 }
 SIGN_CONVENTIONS = (
     "wheel_angle_rad: positive counter-clockwise seen by the driver; "

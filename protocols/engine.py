@@ -147,6 +147,15 @@ class SessionEngine:
             return "aborted"  # aborted, or left incomplete by a writer that died
         return "pending"
 
+    def attempts_of(self, trial_index: int) -> list[tuple[int, str]]:
+        """[(attempt, status)] recorded so far for a trial."""
+        return list(self._attempts.get(trial_index, []))
+
+    @property
+    def waiting_for_start(self) -> bool:
+        """Paused between trials: the next trial starts on resume()."""
+        return self._state is State.PAUSED and self.current is None
+
     def pending(self) -> list[TrialSpec]:
         return [t for t in self.plan.trials if self.status_of(t.trial_index) != "complete"]
 
@@ -184,7 +193,8 @@ class SessionEngine:
     def redo(self, trial_index: int, reason: str = "redo requested by the experimenter") -> None:
         """Run this trial again; the earlier attempt stays in the file, marked superseded."""
         with self._lock:
-            if self._state in (State.RUNNING, State.PAUSED, State.ABORTING):
+            between_trials = self._state is State.PAUSED and self.current is None
+            if self._state in (State.RUNNING, State.PAUSED, State.ABORTING) and not between_trials:
                 raise IllegalTransition(f"cannot redo a trial while {self._state.value}")
             spec = self.plan.trial(trial_index)
             att = self._attempts.get(trial_index, [])
@@ -235,11 +245,11 @@ class SessionEngine:
                 if self._stop_req is not None:
                     self._transition(State.IDLE, self._stop_req)
                     break
-                spec = todo[0]
                 if previous is not None:
-                    self._between_trials(previous, spec)
-                    if self._stop_req is not None:
-                        continue
+                    self._between_trials(previous, todo[0])
+                    previous = None
+                    continue  # a redo during the break changes what comes next
+                spec = todo[0]
                 status = self._run_trial(spec)
                 previous = spec
                 if status == STATUS_ABORTED:
@@ -362,7 +372,7 @@ class SessionEngine:
 
     def _trial_attributes(self, setup: TrialSetup) -> dict:
         s, p = setup.spec, self.plan.protocol
-        return {
+        attrs = {
             "subject": self.plan.subject,
             "condition": s.condition,
             "repetition": s.repetition,
@@ -378,3 +388,7 @@ class SessionEngine:
             "periods": p.trial.periods,
             "instructions": s.instructions,
         }
+        if setup.schedule is not None:
+            # A time-varying trial: when the task changed (docs/data-format.md).
+            attrs["schedule"] = setup.schedule.to_dict()
+        return attrs

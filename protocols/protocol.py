@@ -31,10 +31,30 @@ class VirtualWheel:
 
 
 @dataclass(frozen=True)
+class Segment:
+    """One stretch of a time-varying trial: the task of a stationary condition, for a while."""
+
+    condition: str
+    duration_s: float
+
+
+TRANSITIONS = ("step", "ramp")
+
+
+@dataclass(frozen=True)
 class Condition:
     name: str
     boundary_deg: float  # lines at ±boundary_deg; inf: none; 0: on the centre line
     instructions: str = ""
+    # Time-varying conditions only: the task changes within the trial, segment by segment
+    # (cycled when the trial outlasts them). boundary_deg is then the first segment's.
+    segments: tuple[Segment, ...] = ()
+    transition: str = "step"  # "step", or "ramp": linear over transition_s from each change
+    transition_s: float = 0.0
+
+    @property
+    def time_varying(self) -> bool:
+        return bool(self.segments)
 
 
 @dataclass(frozen=True)
@@ -64,6 +84,10 @@ class Protocol:
     @property
     def condition_names(self) -> list[str]:
         return [c.name for c in self.conditions]
+
+    @property
+    def stationary_condition_names(self) -> list[str]:
+        return [c.name for c in self.conditions if not c.time_varying]
 
     def condition(self, name: str) -> Condition:
         for c in self.conditions:
@@ -137,6 +161,73 @@ def _section(doc: dict, name: str, keys: dict, file: str) -> dict:
         attr, kind = spec if isinstance(spec, tuple) else (k, spec)
         out[attr] = _typed(where, k, v, kind)
     return out
+
+
+_CONDITION_KEYS = {"name", "boundary_deg", "instructions", "segments", "transition", "transition_s"}
+
+
+def _time_varying_condition(
+    cond: Condition, raw: dict, stationary: dict[str, Condition], loop_rate_hz: float, where: str
+) -> Condition:
+    """A condition whose task changes within the trial: validated segments and transition."""
+    if "boundary_deg" in raw:
+        raise ProtocolError(
+            f"{where}.boundary_deg: not allowed with segments; each segment's condition sets the "
+            "boundary"
+        )
+    segs = raw["segments"]
+    if not isinstance(segs, list) or len(segs) < 2:
+        raise ProtocolError(
+            f"{where}.segments: expected a list of at least two "
+            '{condition = "...", duration_s = ...} tables'
+        )
+    out = []
+    for j, seg in enumerate(segs):
+        w = f"{where}.segments[{j + 1}]"
+        if not isinstance(seg, dict):
+            raise ProtocolError(f"{w}: expected a table {{condition = ..., duration_s = ...}}")
+        unknown = set(seg) - {"condition", "duration_s"}
+        if unknown:
+            raise ProtocolError(f"{w}: unknown field(s) {sorted(unknown)}")
+        name = seg.get("condition")
+        if not isinstance(name, str) or name not in stationary:
+            raise ProtocolError(
+                f"{w}.condition: {name!r} is not a stationary condition of this protocol; "
+                f"known: {sorted(stationary)}"
+            )
+        if "duration_s" not in seg:
+            raise ProtocolError(f"{w}.duration_s: required")
+        d = _typed(w, "duration_s", seg["duration_s"], float)
+        if not (math.isfinite(d) and d * loop_rate_hz >= 1.0):
+            raise ProtocolError(
+                f"{w}.duration_s: must be a finite number of at least one sample, got {d}"
+            )
+        out.append(Segment(name, d))
+    transition = raw.get("transition", "step")
+    if transition not in TRANSITIONS:
+        raise ProtocolError(
+            f"{where}.transition: must be one of {list(TRANSITIONS)}, got {transition!r}"
+        )
+    ts = _typed(where, "transition_s", raw.get("transition_s", 0.0), float)
+    if transition == "step" and ts != 0.0:
+        raise ProtocolError(
+            f'{where}.transition_s: only with transition = "ramp" (a step has none)'
+        )
+    if transition == "ramp":
+        shortest = min(s.duration_s for s in out)
+        if not (math.isfinite(ts) and 0.0 < ts <= shortest):
+            raise ProtocolError(
+                f"{where}.transition_s: a ramp needs 0 < transition_s ≤ the shortest segment "
+                f"({shortest} s), got {ts}"
+            )
+    return Condition(
+        cond.name,
+        stationary[out[0].condition].boundary_deg,
+        cond.instructions,
+        segments=tuple(out),
+        transition=transition,
+        transition_s=ts,
+    )
 
 
 def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
@@ -221,20 +312,36 @@ def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
         where = f"{file}: [[conditions]] #{i + 1}"
         if not isinstance(c, dict):
             raise ProtocolError(f"{where}: expected a table")
-        unknown = set(c) - {"name", "boundary_deg", "instructions"}
+        unknown = set(c) - _CONDITION_KEYS
         if unknown:
             raise ProtocolError(f"{where}: unknown field(s) {sorted(unknown)}")
         if "name" not in c or not isinstance(c["name"], str) or not c["name"].strip():
             raise ProtocolError(f"{where}.name: required, a non-empty string")
+        instr = c.get("instructions", "")
+        if not isinstance(instr, str):
+            raise ProtocolError(f"{where}.instructions: expected a string")
+        if "segments" in c:
+            # Checked once every stationary condition is known (segments may name later ones).
+            conds.append(Condition(c["name"].strip(), math.nan, instr))
+            continue
+        for key in ("transition", "transition_s"):
+            if key in c:
+                raise ProtocolError(
+                    f"{where} ({c['name']}).{key}: only for a time-varying condition "
+                    "(one with segments)"
+                )
         if "boundary_deg" not in c:
             raise ProtocolError(f"{where} ({c['name']}).boundary_deg: required (inf for none)")
         bd = _typed(where, "boundary_deg", c["boundary_deg"], float)
         if not bd >= 0:
             raise ProtocolError(f"{where} ({c['name']}).boundary_deg: must be ≥ 0 or inf, got {bd}")
-        instr = c.get("instructions", "")
-        if not isinstance(instr, str):
-            raise ProtocolError(f"{where}.instructions: expected a string")
         conds.append(Condition(c["name"].strip(), bd, instr))
+    stationary = {c.name: c for c in conds if not math.isnan(c.boundary_deg)}
+    for i, (c, raw) in enumerate(zip(conds, raw_conds, strict=True)):
+        if "segments" in raw:
+            conds[i] = _time_varying_condition(
+                c, raw, stationary, loop, f"{file}: [[conditions]] #{i + 1} ({c.name})"
+            )
     names = [c.name for c in conds]
     dup = {n for n in names if names.count(n) > 1}
     if dup:

@@ -150,7 +150,10 @@ class Mechanisms:
         g = self.grip_scheduled_stiffness
         if not g.active:
             return None
-        mean = max(behaviour.grip_mean_n, 1e-9)
+        # In a time-varying trial the grip's mean and k_i move with the task (per sample):
+        # the mechanism then scales around those, not around the trial's base behaviour.
+        mean = np.maximum(block.get("grip_mean_true_N", behaviour.grip_mean_n), 1e-9)
+        k_i = block["true_arm"][:, 1] if "true_arm" in block else behaviour.arm.k_i
         d = np.zeros((len(block["grip_true_N"]), 4))
-        d[:, 1] = behaviour.arm.k_i * g.gain * (block["grip_true_N"] - mean) / mean
+        d[:, 1] = k_i * g.gain * (block["grip_true_N"] - mean) / mean
         return d

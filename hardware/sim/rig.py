@@ -20,7 +20,8 @@ from hardware.interfaces import DriveReading, GripReading
 from hardware.loop import LOOP_CHANNELS, DeviceLoop
 from hardware.safety import SafetyLimits
 from hardware.sim.physiology import ConditionBehaviour, PopulationSpread, SubjectPhysiology
-from hardware.sim.world import World, WorldConfig
+from hardware.sim.schedule import DEFAULT_TAU_S, BehaviourSchedule, schedule_for
+from hardware.sim.world import TRUTH_CHANNELS, World, WorldConfig
 from protocols.engine import LoopControl
 from protocols.protocol import VirtualWheel
 from protocols.session import TrialSetup
@@ -32,14 +33,33 @@ class SimulatedSubject:
 
     physiology: SubjectPhysiology
     spread: PopulationSpread = field(default_factory=PopulationSpread)
+    # How fast the driver follows a change of task within a trial (first order, log scale).
+    adaptation_tau_s: float = DEFAULT_TAU_S
+    grip_adaptation_tau_s: float = DEFAULT_TAU_S
 
-    def behaviour(self, setup: TrialSetup, cfg: WorldConfig) -> ConditionBehaviour:
-        b = self.physiology.for_trial(setup.spec.condition, setup.spec.trial_index, self.spread)
+    def _behaviour_in(
+        self, condition: str, setup: TrialSetup, cfg: WorldConfig
+    ) -> ConditionBehaviour:
+        b = self.physiology.for_trial(condition, setup.spec.trial_index, self.spread)
         drift = cfg.mechanisms.drift
         if drift.active:
             f = drift.factor(setup.spec.trial_index)
             b = replace(b, arm=b.arm.scaled(k_i=f, k_c=f))
         return b
+
+    def behaviour(self, setup: TrialSetup, cfg: WorldConfig) -> ConditionBehaviour:
+        """The trial's behaviour; for a time-varying trial, its first segment's (the base)."""
+        sch = setup.schedule
+        cond = setup.spec.condition if sch is None else sch.conditions[0]
+        return self._behaviour_in(cond, setup, cfg)
+
+    def behaviour_schedule(self, setup: TrialSetup, cfg: WorldConfig) -> BehaviourSchedule | None:
+        """For a time-varying trial: the behaviour of every segment's condition."""
+        sch = setup.schedule
+        if sch is None:
+            return None
+        of = {c: self._behaviour_in(c, setup, cfg) for c in set(sch.conditions)}
+        return schedule_for(sch, of, self.adaptation_tau_s, self.grip_adaptation_tau_s)
 
     def trial_seed(self, setup: TrialSetup) -> list[int]:
         return [self.physiology.seed, setup.spec.trial_index, setup.attempt]
@@ -68,10 +88,17 @@ class SimulatedRig:
             self.world.cfg = self.cfg
         b = self.subject.behaviour(setup, self.cfg)
         self.world.begin_trial(
-            b, self.subject.physiology.left_share, self.subject.trial_seed(setup)
+            b,
+            self.subject.physiology.left_share,
+            self.subject.trial_seed(setup),
+            self.subject.behaviour_schedule(setup, self.cfg),
         )
         self.drive.command = 0.0
         return b
+
+    def truth(self) -> dict[str, float]:
+        """The simulated driver's true parameters this sample (time-varying trials only)."""
+        return self.world.truth()
 
     def device_loop(self, realtime: bool = False, **kw) -> DeviceLoop:
         # In-process and simulated: a late cycle harms nobody, so only a real hang aborts.
@@ -83,6 +110,7 @@ class SimulatedRig:
             self.display,
             realtime=realtime,
             trial_hooks=[self.begin_trial],
+            sample_extras=self.truth,
             **kw,
         )
 
@@ -169,6 +197,7 @@ class BatchLoop:
         rig = self.rig
         rig.begin_trial(setup)
         rig.display.show_condition(setup.spec.condition, setup.spec.boundary_deg)
+        changes = [] if setup.schedule is None else setup.schedule.display_changes()[1:]
         fs = setup.fs_hz
         blk = max(1, int(round(self.block_s * fs)))
         n = setup.n_samples
@@ -192,6 +221,11 @@ class BatchLoop:
                     "grip_force_right_N": right,
                 }
                 assert tuple(block) == LOOP_CHANNELS
+                if rig.world.scheduled:
+                    block.update({c: out[c] for c in TRUTH_CHANNELS})
+                while changes and changes[0][0] < k + m:
+                    _, cond, bd = changes.pop(0)
+                    rig.display.show_condition(cond, bd)
                 rig.display.show_angle(float(out["wheel_angle_rad"][-1]))
                 yield block
                 if control.stop_requested:

@@ -10,6 +10,11 @@ so that θ/T_d = 1/(b_c s + k_c) + 1/(I_i s² + b_i s + k_i), the paper's admitt
 T_hand_extra carries the remnant and the torques of added mechanisms (reflexes, stiffening,
 time-varying parameters); T_wheel_extra carries wheel-side mechanisms (dry friction).
 
+Time-varying trials (a :class:`hardware.sim.schedule.BehaviourSchedule`) move the arm parameters
+sample by sample through the same per-sample deltas (``dpar``) relative to the trial's base
+behaviour, and the grip force's mean with them; the true values are returned as extra channels
+(:data:`TRUTH_CHANNELS`).
+
 The linear part is discretised exactly (zero-order hold, matrix exponential); the extra
 torques are held over one sample. One compiled kernel, ``_advance``, runs both a whole block
 (batch: the loop's command, rendering and safety limits, computed inside) and a single sample
@@ -19,7 +24,7 @@ same seeded 1-second blocks, so the two paths give the same signals.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from numba import njit
@@ -29,13 +34,15 @@ from scipy.signal import lfilter
 from hardware.safety import SafetyLimits, loop_command
 from hardware.sim.mechanisms import Mechanisms
 from hardware.sim.physiology import ConditionBehaviour
+from hardware.sim.schedule import ARM_COLUMNS, BehaviourSchedule
 from protocols.protocol import VirtualWheel
 
 # Indices into the kernel's parameter vector.
 P_KSW, P_BSW, P_QANG, P_TRES, P_KC, P_BC = 0, 1, 2, 3, 4, 5
 P_K3, P_COUL, P_COUL_EPS, P_ACT_ALPHA = 6, 7, 8, 9
 P_RKP, P_RKV, P_RW, P_RZ, P_DT, P_HAS_DPAR = 10, 11, 12, 13, 14, 15
-N_PARAMS = 16
+P_DPAR_HALF = 16  # dt/2 for scheduled trials (see World._scheduled_deltas), else 0
+N_PARAMS = 17
 # Indices into the kernel's state vector (beyond the 4 mechanical states).
 S_TM, S_RA, S_RAD, S_RPOS, S_SPOS, S_CMD = 4, 5, 6, 7, 8, 9
 N_STATE = 10
@@ -72,6 +79,15 @@ OUTPUTS = (
     "motor_command_Nm",
     "motor_torque_Nm",
 )
+# The simulated driver's true admittance parameters and grip mean, per sample: time-varying
+# trials only (the parameters that act from this sample to the next).
+TRUTH_CHANNELS = (
+    "true_b_i_Nms_per_rad",
+    "true_k_i_Nm_per_rad",
+    "true_b_c_Nms_per_rad",
+    "true_k_c_Nm_per_rad",
+    "true_grip_mean_N",
+)
 
 
 def discretise(I_w: float, arm, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -101,8 +117,12 @@ def discretise(I_w: float, arm, dt: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True)
-def _measure(x, st, p, ring_s, vel_noise_k, td_noise_k):
-    """(angle, velocity, driver torque) as the sensors report them for the current state."""
+def _measure(x, st, p, ring_s, vel_noise_k, td_noise_k, dkc=0.0, dbc=0.0):
+    """(angle, velocity, driver torque) as the sensors report them for the current state.
+
+    ``dkc``, ``dbc``: this sample's contact deltas (dpar), so the column sensor reads the
+    contact torque the arm actually exerts when the contact parameters vary.
+    """
     q = p[P_QANG]
     ang = np.round(x[0] / q) * q if q > 0.0 else x[0]
     vel = x[1] + vel_noise_k
@@ -110,6 +130,7 @@ def _measure(x, st, p, ring_s, vel_noise_k, td_noise_k):
         td = ring_s[int(st[S_SPOS])]
     else:
         td = p[P_KC] * (x[0] - x[2]) + p[P_BC] * (x[1] - x[3])
+        td = td + dkc * (x[0] - x[2]) + dbc * (x[1] - x[3])
     td = td + td_noise_k
     r = p[P_TRES]
     if r > 0.0:
@@ -143,7 +164,12 @@ def _advance(
     xn = np.empty(4)
     for j in range(n):
         k = i0 + j
-        ang, vel, tdm = _measure(x, st, p, ring_s, vel_noise[k], td_noise[k])
+        if p[P_HAS_DPAR] != 0.0:
+            ang, vel, tdm = _measure(
+                x, st, p, ring_s, vel_noise[k], td_noise[k], dpar[k, 3], dpar[k, 2]
+            )
+        else:
+            ang, vel, tdm = _measure(x, st, p, ring_s, vel_noise[k], td_noise[k])
         # What the drive reports as torque actual at this cycle: last cycle's applied torque.
         tm_reported = st[S_TM]
         if internal:
@@ -160,10 +186,15 @@ def _advance(
         if p[P_K3] != 0.0:
             h -= p[P_K3] * thh * thh * thh
         if p[P_HAS_DPAR] != 0.0:
-            dcon = dpar[k, 3] * (th - thh) + dpar[k, 2] * (om - omh)
-            h += dcon - dpar[k, 0] * omh - dpar[k, 1] * thh
+            # The delta torques are held over the sample, i.e. half a sample late: a spring Δk
+            # then acts as Δk − s·Δk·dt/2, a negative damping. Scheduled trials add Δk·dt/2 to
+            # the matching damping (P_DPAR_HALF), so the arm moves with the logged parameters.
+            half = p[P_DPAR_HALF]
+            dcon_true = dpar[k, 3] * (th - thh) + dpar[k, 2] * (om - omh)
+            dcon = dcon_true + half * dpar[k, 3] * (om - omh)
+            h += dcon - (dpar[k, 0] + half * dpar[k, 1]) * omh - dpar[k, 1] * thh
             w -= dcon
-            contact += dcon
+            contact += dcon_true
         if p[P_COUL] != 0.0:
             w -= p[P_COUL] * np.tanh(om / p[P_COUL_EPS])
         if p[P_RKP] != 0.0 or p[P_RKV] != 0.0:
@@ -211,8 +242,17 @@ class NoiseBlocks:
     Drawing block by block makes the stream independent of how callers slice it.
     """
 
-    def __init__(self, cfg: WorldConfig, behaviour: ConditionBehaviour, left_share: float, seed):
+    def __init__(
+        self,
+        cfg: WorldConfig,
+        behaviour: ConditionBehaviour,
+        left_share: float,
+        seed,
+        schedule: BehaviourSchedule | None = None,
+    ):
         self.cfg, self.b, self.left_share = cfg, behaviour, left_share
+        # No random draws of its own: a schedule leaves the noise stream as it is.
+        self.schedule = None if schedule is None else schedule.response(cfg.fs_hz)
         self.rng = np.random.default_rng(seed)
         self.block = int(round(cfg.fs_hz))
         fs = cfg.fs_hz
@@ -235,7 +275,16 @@ class NoiseBlocks:
         e = self.rng.standard_normal((5, n))
         rem, self.zi_rem = self._ar1(self.a_rem, e[0], self.zi_rem)
         g, self.zi_grip = self._ar1(self.a_grip, e[1], self.zi_grip)
-        grip_true = np.maximum(b.grip_mean_n + b.grip_sd_n * g, 0.0)
+        tv = None if self.schedule is None else self.schedule.next_block(n)
+        if tv is None:
+            grip_mean, grip_sd, remnant_sd = b.grip_mean_n, b.grip_sd_n, b.remnant_sd_nm
+        else:
+            grip_mean, grip_sd, remnant_sd = (
+                tv["grip_mean_true_N"],
+                tv["grip_sd_N"],
+                tv["remnant_sd_Nm"],
+            )
+        grip_true = np.maximum(grip_mean + grip_sd * g, 0.0)
         # The glove unit samples both hands at its own rate; the loop holds the latest frame.
         left = grip_true * self.left_share + s.glove_noise_sd_n * e[2]
         right = grip_true * (1 - self.left_share) + s.glove_noise_sd_n * e[3]
@@ -251,14 +300,18 @@ class NoiseBlocks:
         if len(starts):
             self.glove_hold = (hold_left[-1], hold_right[-1])
         self.glove_phase = (self.glove_phase + n) % self.glove_every
-        return {
-            "remnant_Nm": b.remnant_sd_nm * rem,
+        out = {
+            "remnant_Nm": remnant_sd * rem,
             "velocity_noise": s.velocity_noise_sd * e[4],
             "torque_noise": s.torque_noise_sd * self.rng.standard_normal(n),
             "grip_true_N": grip_true,
             "grip_force_left_N": np.maximum(hold_left, 0.0),
             "grip_force_right_N": np.maximum(hold_right, 0.0),
         }
+        if tv is not None:
+            out["true_arm"] = tv["true_arm"]
+            out["grip_mean_true_N"] = tv["grip_mean_true_N"]
+        return out
 
 
 class World:
@@ -280,7 +333,14 @@ class World:
         self._trial = False
 
     # -- trial set-up -------------------------------------------------------------------
-    def begin_trial(self, behaviour: ConditionBehaviour, left_share: float, seed) -> None:
+    def begin_trial(
+        self,
+        behaviour: ConditionBehaviour,
+        left_share: float,
+        seed,
+        schedule: BehaviourSchedule | None = None,
+    ) -> None:
+        """``behaviour`` is the trial's base (for a time-varying trial: its first segment's)."""
         cfg, s, m = self.cfg, self.cfg.sensors, self.cfg.mechanisms
         self.behaviour = behaviour
         dt = 1.0 / cfg.fs_hz
@@ -299,9 +359,10 @@ class World:
         self.ring_s = np.zeros(m.sensor_delay_samples(cfg.fs_hz))
         self.x = np.zeros(4)
         self.st = np.zeros(N_STATE)
-        self.noise = NoiseBlocks(cfg, behaviour, left_share, seed)
+        self.noise = NoiseBlocks(cfg, behaviour, left_share, seed, schedule)
         self._blk: dict[str, np.ndarray] | None = None
         self._dpar = np.zeros((0, 4))
+        self._truth: np.ndarray | None = None  # (block, len(TRUTH_CHANNELS)) when scheduled
         self._k = 0  # index within the current noise block
         self._n = 0  # samples advanced in this trial
         self._out1 = np.zeros((len(OUTPUTS), 1))
@@ -313,8 +374,29 @@ class World:
             self._blk = self.noise.next_block()
             self._k = 0
             dp = self.cfg.mechanisms.parameter_deltas(self._blk, self.behaviour)
+            if "true_arm" in self._blk:
+                dp = self._scheduled_deltas(self._blk, dp)
             self._dpar = dp if dp is not None else np.zeros((0, 4))
             self.p[P_HAS_DPAR] = 1.0 if dp is not None else 0.0
+
+    def _scheduled_deltas(self, blk: dict[str, np.ndarray], dp: np.ndarray | None) -> np.ndarray:
+        """Deltas for a scheduled block; records the truth. Adds to any mechanism's deltas.
+
+        The linear part is re-discretised exactly at the block's last parameters, so a block
+        where the driver has settled runs exactly (zero deltas) and only the samples of a
+        change go through the held deltas. Both paths do this at the same block boundaries.
+        """
+        arm = blk["true_arm"]
+        truth = np.empty((len(arm), len(TRUTH_CHANNELS)))
+        truth[:, :4] = arm if dp is None else arm + dp
+        truth[:, 4] = blk["grip_mean_true_N"]
+        self._truth = truth
+        base = replace(self.behaviour.arm, **dict(zip(ARM_COLUMNS, arm[-1].tolist(), strict=True)))
+        self.Ad, self.Bd = discretise(self.cfg.wheel_inertia_kgm2, base, self.p[P_DT])
+        self.p[P_KC], self.p[P_BC] = base.k_c, base.b_c
+        self.p[P_DPAR_HALF] = 0.5 * self.p[P_DT]
+        d = arm - arm[-1]
+        return d if dp is None else d + dp
 
     # -- batch --------------------------------------------------------------------------
     def run(self, tp: np.ndarray) -> dict[str, np.ndarray]:
@@ -325,6 +407,7 @@ class World:
         n = len(tp)
         out = np.empty((len(OUTPUTS), n))
         extra = {k: np.empty(n) for k in ("grip_force_left_N", "grip_force_right_N", "grip_true_N")}
+        truth = None if not self.scheduled else np.empty((n, len(TRUTH_CHANNELS)))
         done = 0
         while done < n:
             self._ensure_block()
@@ -352,11 +435,15 @@ class World:
             )
             for key in extra:
                 extra[key][done : done + m] = b[key][self._k : self._k + m]
+            if truth is not None and self._truth is not None:
+                truth[done : done + m] = self._truth[self._k : self._k + m]
             self._k += m
             done += m
         self._n += n
         res = {name: out[i] for i, name in enumerate(OUTPUTS)}
         res.update(extra)
+        if truth is not None:
+            res.update({c: truth[:, i] for i, c in enumerate(TRUTH_CHANNELS)})
         return res
 
     # -- live, one sample at a time --------------------------------------------------------
@@ -364,8 +451,18 @@ class World:
         """What the sensors report now (before the next step)."""
         self._ensure_block()
         b, k = self._blk, self._k
+        dkc = dbc = 0.0
+        if self.p[P_HAS_DPAR] != 0.0:
+            dkc, dbc = self._dpar[k, 3], self._dpar[k, 2]
         ang, vel, td = _measure(
-            self.x, self.st, self.p, self.ring_s, b["velocity_noise"][k], b["torque_noise"][k]
+            self.x,
+            self.st,
+            self.p,
+            self.ring_s,
+            b["velocity_noise"][k],
+            b["torque_noise"][k],
+            dkc,
+            dbc,
         )
         return {
             "wheel_angle_rad": ang,
@@ -376,6 +473,16 @@ class World:
             "grip_force_right_N": b["grip_force_right_N"][k],
             "grip_true_N": b["grip_true_N"][k],
         }
+
+    def truth(self) -> dict[str, float]:
+        """The driver's true parameters now (time-varying trials; else empty)."""
+        if not self.scheduled:
+            return {}
+        self._ensure_block()
+        row = self._truth[self._k] if self._truth is not None else None
+        if row is None:
+            return {}
+        return {c: float(row[i]) for i, c in enumerate(TRUTH_CHANNELS)}
 
     def step(self, motor_command_nm: float) -> None:
         """Apply one sample of motor command (N·m) and advance one sample."""
@@ -412,6 +519,11 @@ class World:
         self.read()
         self.step(0.0)
         self._trial = False
+
+    @property
+    def scheduled(self) -> bool:
+        """Whether this trial is time-varying (a stand-in noise source has no schedule)."""
+        return getattr(self.noise, "schedule", None) is not None
 
     @property
     def samples_done(self) -> int:

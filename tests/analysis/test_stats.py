@@ -208,3 +208,12 @@ def test_bad_inputs_are_explained() -> None:
         rm_anova(np.array([[1.0, np.nan], [2.0, 3.0]]))
     with pytest.raises(ValueError, match="column"):
         rm_anova(pd.DataFrame({"a": [1]}), dv="grip", within="c", subject="s")
+
+
+def test_two_subjects_do_not_crash_the_huynh_feldt_correction():
+    from analysis.stats import epsilon_hf, rm_anova
+
+    data = np.array([[1.0, 2.0, 3.5, 4.0], [1.5, 2.5, 3.0, 5.0]])
+    assert epsilon_hf(data) == 1.0
+    res = rm_anova(data)
+    assert np.isfinite(res.F)

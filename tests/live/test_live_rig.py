@@ -154,3 +154,63 @@ def test_corrupted_serial_bytes_are_counted_not_fatal(devices, short_protocol, t
     # CRC, header or sync) leave sequence gaps; out-of-range frames are counted on their own.
     assert st.dropped_frames >= 5
     assert np.all(np.isfinite(recs[0].grip_force_N)) and recs[0].grip_force_N.max() < 1000
+
+
+def test_paused_real_time_simulated_trial_resumes_on_schedule(short_protocol):
+    """The in-process simulated rig waits with its world during a pause and then carries on:
+    no burst of missed cycles, no stall, a complete trial."""
+    from hardware.safety import SafetyLimits
+    from hardware.sim.physiology import make_population
+    from hardware.sim.rig import simulated_rig
+    from hardware.sim.world import WorldConfig
+
+    rig = simulated_rig(make_population(2, seed=1)[1], WorldConfig(fs_hz=1000.0))
+    loop = rig.device_loop(realtime=True, safety=SafetyLimits(loop_stall_s=0.2))
+    plan = build_plan(short_protocol, 2)
+    eng = SessionEngine(plan, loop)
+    seen = []
+    eng.subscribe(seen.append)
+    paused = threading.Event()
+
+    def on(e):
+        if isinstance(e, ev.SamplesAcquired) and e.start >= 2000 and not paused.is_set():
+            paused.set()
+            eng.pause()
+
+    eng.subscribe(on)
+    t = threading.Thread(target=eng.run)
+    t.start()
+    assert paused.wait(20)
+    time.sleep(1.5)  # much longer than the stall limit
+    eng.resume()
+    t.join(60)
+    ends = [e for e in seen if isinstance(e, ev.TrialEnded)]
+    assert [e.status for e in ends] == ["complete", "complete"], [e.reason for e in ends]
+    assert ends[0].stats["period_error_max_ms"] < 200
+
+
+def test_redo_while_waiting_between_trials(short_protocol, tmp_path):
+    from hardware.sim.physiology import make_population
+    from hardware.sim.rig import simulated_rig
+    from hardware.sim.world import WorldConfig
+
+    rig = simulated_rig(make_population(2, seed=1)[1], WorldConfig(fs_hz=1000.0))
+    eng = SessionEngine(build_plan(short_protocol, 2), rig.batch_loop(), pause_between_trials=True)
+    eng.subscribe(SessionWriter(tmp_path / "S02.h5"))
+    t = threading.Thread(target=eng.run)
+    t.start()
+    deadline = time.monotonic() + 20
+    while not eng.waiting_for_start and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert eng.waiting_for_start and eng.attempts_of(1) == [(1, "complete")]
+    eng.redo(1)
+    assert eng.status_of(1) == "pending"
+    eng.resume()
+    deadline = time.monotonic() + 20
+    while not (len(eng.attempts_of(1)) == 2 and eng.waiting_for_start):
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    eng.resume()
+    t.join(30)
+    assert eng.state is State.DONE
+    assert sorted(eng.attempts_of(1)) == [(1, "superseded"), (2, "complete")]
