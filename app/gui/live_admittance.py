@@ -30,6 +30,7 @@ import app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that mo
 from app.gui.livedata import LiveData
 from app.gui.lpv_loader import LoadedLPV, LPVLoadError, load_lpv_model
 from app.gui.plots import log_ticks
+from app.gui.tracker_feed import TrackerFeed
 
 NO_MODEL = "no LPV model loaded"
 
@@ -41,8 +42,10 @@ class LiveAdmittancePanel(QGroupBox):
         *,
         mu_window_s: float = 1.0,
         rate_hz: float = 5.0,
+        tracker: TrackerFeed | None = None,
         parent: QWidget | None = None,
     ) -> None:
+        self.tracker = tracker
         super().__init__("Live admittance (LPV, grip-force scheduled)", parent)
         self.live = live
         self.mu_window_s = mu_window_s
@@ -104,7 +107,11 @@ class LiveAdmittancePanel(QGroupBox):
         except LPVLoadError as e:
             self.model = None
             self._show_model_state(f"{NO_MODEL} ({e})")
+            if self.tracker is not None:
+                self.tracker.set_results(None)
             return False
+        if self.tracker is not None:
+            self.tracker.set_results(path)  # the grip-scheduled EKF starts with the next trial
         self._show_model_state()
         return True
 
@@ -145,6 +152,16 @@ class LiveAdmittancePanel(QGroupBox):
         self.mu = mu
         self.k_i = float(m.parameters(mu)["k_i"])
         clipped = "" if lo <= mu <= hi else f"  (clipped to {lo:.0f}–{hi:.0f} N)"
-        self.mu_label.setText(f"μ = {mu:.0f} N{clipped}")
+        est = self.tracker.estimate if self.tracker is not None else None
+        if est is not None:
+            # The grip-scheduled EKF (analysis.tracking): grip force at once, corrected by the
+            # perturbation response; the LPV alone is shown beside it.
+            self.mu_label.setText(f"μ = {mu:.0f} N{clipped} · LPV alone: k_i = {self.k_i:.1f}")
+            self.k_i = float(est.k_i)
+            self.k_label.setText(f"k_i = {self.k_i:.1f} N·m/rad (EKF)")
+            self.curve.setData(self.f_hz, np.abs(est.admittance(self.f_hz)))
+            return
+        note = f" — {self.tracker.error}" if self.tracker is not None and self.tracker.error else ""
+        self.mu_label.setText(f"μ = {mu:.0f} N{clipped}{note}")
         self.k_label.setText(f"k_i = {self.k_i:.1f} N·m/rad")
         self.curve.setData(self.f_hz, np.abs(m.frequency_response(mu, self.f_hz)))

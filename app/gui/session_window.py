@@ -54,6 +54,7 @@ from app.gui.live_admittance import LiveAdmittancePanel
 from app.gui.livedata import LiveData
 from app.gui.plots import CoherencePlot, LivePlots
 from app.gui.quality import QualityCheck, quality_check
+from app.gui.tracker_feed import TrackerFeed
 from protocols import events as ev
 from protocols.protocol import Protocol
 from protocols.session import TrialSpec, subject_id
@@ -96,9 +97,10 @@ class ExperimenterWindow(QMainWindow):
         self.live = LiveData()
         self.bridge = EngineBridge(self.live, self)
         self.bridge.connect_to(self.on_event)
+        self.tracker_feed = TrackerFeed()
         self.controller = SessionController(
             protocol, data_root, rig_path=rig_path, rig_factory=rig_factory,
-            subscribers=(self.bridge,),
+            subscribers=(self.bridge, self.tracker_feed),
         )  # fmt: skip
         self.dashboard = dashboard or SubjectDashboard(span_deg=dashboard_span(protocol))
         self.dashboard.angle_source = self._display_angle
@@ -285,7 +287,7 @@ class ExperimenterWindow(QMainWindow):
         self.coherence_plot = CoherencePlot()
         ql.addWidget(self.coherence_plot, 1)
         bl.addWidget(qbox, 3)
-        self.admittance = LiveAdmittancePanel(self.live)
+        self.admittance = LiveAdmittancePanel(self.live, tracker=self.tracker_feed)
         bl.addWidget(self.admittance, 2)
         right.addWidget(bottom)
         right.setStretchFactor(0, 3)
