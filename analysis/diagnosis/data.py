@@ -1,0 +1,467 @@
+"""Measured trials prepared for the diagnosis: spectra on a fixed bin grid, checks of the input.
+
+Every trial is compared with the simulator on the same footing:
+
+- The analysed samples are whole perturbation periods (``analysis.periods.select_periods``),
+  taken as one DFT segment; with several periods per trial the excited bins are multiples of
+  the period count.
+- Each channel is made periodic before the DFT by removing the ramp between its first sample
+  and the sample after the segment. A trial's angle wanders slowly (the remnant), so the
+  periodic extension of a raw segment jumps at its ends and the jump leaks into every bin
+  with a 1/k spectrum. At 6–25 Hz that leakage, not noise, dominated the unexcited bins of the
+  angle (by 100× in simulated data), and it looks coherent from repetition to repetition.
+  The same correction is applied to the simulated channels, so it cannot favour a model.
+- Bins from the first to ``F_MAX_HZ`` (25 Hz: the top band is 20 Hz, and harmonics of the
+  strongly excited low bands stay below it) are kept, excited and unexcited alike; the bins
+  are grouped into bands of at least ``MIN_BAND_BINS`` where the noise is taken as white.
+- Only the five core interchange channels are used (time, perturbation torque, driver torque,
+  wheel angle, grip force), so data from any rig that can export them can be diagnosed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.signal import butter, sosfiltfilt
+
+from analysis.armfit import fit_arm
+from analysis.frf import TrialSpectra, frequency_response, trial_spectra
+from analysis.periods import (
+    Excitation,
+    PeriodSelection,
+    find_excitation,
+    record_period_s,
+    select_periods,
+)
+from hardware.sim.physiology import ArmParams
+from protocols.datafile import DataFileError
+from protocols.protocol import VirtualWheel
+from protocols.records import STATUS_COMPLETE, TrialRecord
+
+F_MAX_HZ = 25.0
+MIN_BAND_BINS = 16
+BAND_MIN_RATIO = 1.26  # a band spans at least a third of an octave
+TRANSIENT_ORDER = 2  # smooth terms (constant, slope) projected out of each band
+GRIP_LOWPASS_HZ = 2.0  # the slow grip fluctuation is below ~1 Hz; glove noise is white
+WHEEL_INERTIA_KGM2 = 0.3  # the rig's physical wheel inertia (Table 1; WorldConfig default)
+# A rig whose wheel relation Tp − Td = Z_w θ is off by more than this (relative error at the
+# excited bins) is not the rig the simulator models.
+RIG_MISMATCH_LIMIT = 0.5
+# ... below this frequency, where the wheel's own dynamics dominate Tp − Td and the candidate
+# mechanisms at plausible strength change it by a few per cent (a 10 ms actuator lag: 6 % at
+# 1 Hz, but 70 % at 20 Hz).
+RIG_CHECK_MAX_HZ = 2.0
+
+
+FALLBACK_ARM = ArmParams(0.1, 1.0, 13.0, 2.6, 100.0)  # a mid-range arm (BT12-like)
+
+
+class DiagnosisError(DataFileError):
+    """Input the diagnosis cannot work with. A ``DataFileError`` so that the command line
+    reports it as bad input (one message, exit status 2)."""
+
+
+@dataclass
+class TrialData:
+    """One trial, measured, on the diagnosis' bin grid."""
+
+    label: str
+    subject: str
+    condition: str
+    repetition: int
+    familiarization: bool
+    trial_index: int | None
+    fs_hz: float
+    tp: np.ndarray  # perturbation torque from the trial's first sample to the end of the sim
+    grip: np.ndarray  # measured total grip force, low-passed, same length
+    grip_raw: np.ndarray
+    start: int
+    stop: int
+    n_sim: int  # samples simulated: up to and including the sample after the segment
+    selection: PeriodSelection
+    excitation: Excitation
+    bins: np.ndarray  # DFT bins of the segment used (1 … K)
+    excited: np.ndarray  # bool per bin
+    band: np.ndarray  # noise band index per bin
+    Y: np.ndarray  # complex (4, n_bins): θ (rad), Td (N·m), ramp removed; θ, Td raw
+    Tp: np.ndarray  # complex (n_bins,)
+    Zw: np.ndarray  # complex (n_bins,), wheel impedance I s² + b s + k
+    theta: np.ndarray  # measured segment (mean-free)
+    td: np.ndarray
+    arm0: ArmParams  # the paper's FRF fit of this trial alone: a start for the diagnosis
+    arm_cell: ArmParams  # the FRF fit of the subject × condition (all repetitions): another
+    spectra: TrialSpectra  # the paper's per-trial Fourier coefficients (analysis.frf)
+    source: str = ""
+    notes: list[str] = field(default_factory=list)
+    # Remnant realisations (N·m, n_sim samples each) for nonlinear models; set by the fit.
+    remnant: list[np.ndarray] = field(default_factory=list)
+    _projector: Callable[[np.ndarray], np.ndarray] | None = field(default=None, repr=False)
+
+    def __getstate__(self) -> dict:
+        # The cached projector is a closure: rebuilt on demand in worker processes.
+        state = dict(self.__dict__)
+        state["_projector"] = None
+        return state
+
+    @property
+    def n_bands(self) -> int:
+        return int(self.band.max()) + 1
+
+    @property
+    def freqs_hz(self) -> np.ndarray:
+        return self.bins * self.fs_hz / (self.stop - self.start)
+
+    @property
+    def cell(self) -> tuple[str, str]:
+        return (self.subject, self.condition)
+
+
+def channel_spectra(
+    x: np.ndarray, start: int, stop: int, bins: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Amplitude-scaled spectra (|X| = sine amplitude) of x[start:stop] at ``bins``: with the
+    ramp x[stop] − x[start] removed, and raw (see the module docstring for which is used
+    where). Without a sample after the segment the last step is extrapolated."""
+    x = np.asarray(x, dtype=float)
+    seg = x[start:stop]
+    n = len(seg)
+    nxt = x[stop] if stop < len(x) else 2 * seg[-1] - seg[-2]
+    raw = np.fft.rfft(seg)[bins] * (2.0 / n)
+    # DFT of the ramp Δ·m/n at bin k: −Δ / (1 − e^{−j2πk/n}).
+    ramp = -(nxt - seg[0]) / (1.0 - np.exp(-2j * np.pi * bins / n))
+    return raw - ramp * (2.0 / n), raw
+
+
+def measurement_spectra(
+    theta: np.ndarray, td: np.ndarray, start: int, stop: int, bins: np.ndarray
+) -> np.ndarray:
+    """(4, n_bins): θ and Td with the ramp removed, then θ and Td raw."""
+    th_r, th = channel_spectra(theta, start, stop, bins)
+    td_r, td_ = channel_spectra(td, start, stop, bins)
+    return np.array([th_r, td_r, th, td_])
+
+
+def transient_projector(trial: TrialData) -> Callable[[np.ndarray], np.ndarray]:
+    """x ↦ x with, in every band, its least-squares fit by a polynomial in frequency of
+    TRANSIENT_ORDER terms removed (last axis = bins).
+
+    What is not periodic in a segment (the start-up transient, the remnant's slow wander)
+    leaks into the DFT as a term that varies smoothly with frequency (the local polynomial
+    method of Pintelon & Schoukens). Left in, it is structure that the arm parameters can
+    shape through the simulated transient; on null data that made the fit beat the true
+    parameters by hundreds of units of −2 log L. Excited lines and distortion are not smooth
+    from bin to bin and lose only their small projection on the polynomial.
+    """
+    if trial._projector is not None:
+        return trial._projector
+    parts = []
+    for b in range(trial.n_bands):
+        idx = np.flatnonzero(trial.band == b)
+        x = (trial.bins[idx] - trial.bins[idx].mean()) / max(1.0, np.ptp(trial.bins[idx]) / 2)
+        P = np.stack([x**j for j in range(TRANSIENT_ORDER)], axis=1)
+        Q, _ = np.linalg.qr(P)
+        parts.append((idx[0], idx[-1] + 1, Q))
+
+    def project(v: np.ndarray) -> np.ndarray:
+        out = np.array(v, dtype=complex, copy=True)
+        for lo, hi, Q in parts:
+            seg = out[..., lo:hi]
+            out[..., lo:hi] = seg - (seg @ Q) @ Q.T
+        return out
+
+    trial._projector = project
+    return project
+
+
+def make_bands(n_bins: int) -> np.ndarray:
+    """Band index for bins 1..n_bins: contiguous, ≥ MIN_BAND_BINS bins, ≥ 1/3 octave wide."""
+    band = np.empty(n_bins, dtype=int)
+    j, lo = 0, 1
+    k = 1
+    while k <= n_bins:
+        band[k - 1] = j
+        if (k - lo + 1) >= MIN_BAND_BINS and k >= BAND_MIN_RATIO * lo:
+            j += 1
+            lo = k + 1
+        k += 1
+    # A short last band joins the one before.
+    last = band == band[-1]
+    if band[-1] > 0 and np.count_nonzero(last) < MIN_BAND_BINS:
+        band[last] = band[-1] - 1
+    return band
+
+
+def wheel_impedance(f_hz: np.ndarray, wheel: VirtualWheel | None = None) -> np.ndarray:
+    w = wheel or VirtualWheel()
+    s = 2j * np.pi * np.asarray(f_hz, dtype=float)
+    return WHEEL_INERTIA_KGM2 * s**2 + w.damping_nms_per_rad * s + w.stiffness_nm_per_rad
+
+
+def _lowpass(x: np.ndarray, fs: float, fc: float) -> np.ndarray:
+    if len(x) < 30 or fc >= 0.45 * fs:
+        return np.asarray(x, dtype=float).copy()
+    sos = butter(2, fc / (fs / 2), output="sos")
+    return sosfiltfilt(sos, np.asarray(x, dtype=float))
+
+
+def prepare_trial(rec: TrialRecord) -> TrialData:
+    """Spectra and signals of one trial; ``ValueError`` (naming the trial) if unusable."""
+    where = rec.source or rec.label()
+    fs = float(rec.fs_hz)
+    T = record_period_s(rec)
+    if fs > 0 and rec.n_samples < T * fs:
+        raise ValueError(
+            f"{where}: {rec.n_samples / fs:.1f} s of data, shorter than one perturbation "
+            f"period ({T:g} s)"
+        )
+    sel = select_periods(rec)
+    exc = find_excitation(rec, sel)
+    n_per = sel.n_periods
+    P = sel.n_samples
+    f_top = exc.frequencies_hz.max()
+    f_max = min(max(F_MAX_HZ, 1.25 * f_top), 0.4 * fs)
+    K = int(math.floor(f_max * P / fs))
+    bins = np.arange(1, K + 1)
+    excited = np.isin(bins, exc.bins * n_per)
+    if not excited.any():
+        raise ValueError(f"{where}: no excited bin below {f_max:g} Hz")
+    start, stop = sel.start, sel.stop
+    n_sim = min(stop + 1, rec.n_samples)
+    for name in ("perturbation_torque_Nm", "driver_torque_Nm", "wheel_angle_rad", "grip_force_N"):
+        x = getattr(rec, name)[:n_sim]
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"{where}: {name} has non-finite samples")
+    th = np.asarray(rec.wheel_angle_rad, dtype=float)
+    td = np.asarray(rec.driver_torque_Nm, dtype=float)
+    tp = np.asarray(rec.perturbation_torque_Nm, dtype=float)
+    grip_raw = np.asarray(rec.grip_force_N, dtype=float)[:n_sim]
+    Y = measurement_spectra(th, td, start, stop, bins)
+    seg_th, seg_td = th[start:stop], td[start:stop]
+    spectra = trial_spectra(rec, selection=sel, excitation=exc)
+    try:
+        arm0 = ArmParams(**fit_arm(frequency_response(spectra)).params.as_dict())
+    except (ValueError, np.linalg.LinAlgError):
+        arm0 = FALLBACK_ARM
+    f = bins * fs / P
+    return TrialData(
+        label=rec.label(),
+        subject=rec.subject,
+        condition=rec.condition,
+        repetition=int(rec.repetition),
+        familiarization=bool(rec.familiarization),
+        trial_index=rec.trial_index,
+        fs_hz=fs,
+        tp=tp[:n_sim].copy(),
+        grip=_lowpass(grip_raw, fs, GRIP_LOWPASS_HZ),
+        grip_raw=grip_raw,
+        start=start,
+        stop=stop,
+        n_sim=n_sim,
+        selection=sel,
+        excitation=exc,
+        bins=bins,
+        excited=excited,
+        band=make_bands(K),
+        Y=Y,
+        Tp=channel_spectra(tp, start, stop, bins)[1],
+        Zw=wheel_impedance(f),
+        theta=seg_th - seg_th.mean(),
+        td=seg_td - seg_td.mean(),
+        arm0=arm0,
+        arm_cell=arm0,
+        spectra=spectra,
+        source=rec.source,
+    )
+
+
+@dataclass
+class PreparedStudy:
+    """What the diagnosis works on, and what it had to leave out."""
+
+    trials: list[TrialData]  # measured repetitions
+    familiarization: list[TrialData]  # used only for the trial-order (drift) axis
+    skipped: list[tuple[str, str]]  # (label, reason)
+    notes: list[str]
+    limits: list[str]  # what the data do not allow (shown prominently)
+
+    @property
+    def subjects(self) -> list[str]:
+        return sorted({t.subject for t in self.trials})
+
+    @property
+    def conditions(self) -> list[str]:
+        from analysis.study import _condition_key
+
+        return sorted({t.condition for t in self.trials}, key=_condition_key)
+
+    @property
+    def has_held_out(self) -> bool:
+        """At least one subject × condition with two measured repetitions."""
+        reps: dict[tuple[str, str], set[int]] = {}
+        for t in self.trials:
+            reps.setdefault(t.cell, set()).add(t.repetition)
+        return any(len(r) >= 2 for r in reps.values())
+
+
+def _perturbation_present(rec: TrialRecord) -> bool:
+    tp = np.asarray(rec.perturbation_torque_Nm, dtype=float)
+    tp = tp[np.isfinite(tp)]
+    return tp.size > 0 and float(np.std(tp)) > 1e-3
+
+
+def prepare_study(records: Sequence[TrialRecord]) -> PreparedStudy:
+    """Select and prepare the trials; raise :class:`DiagnosisError` when nothing is usable."""
+    if not records:
+        raise DiagnosisError("no trials in the data")
+    skipped: list[tuple[str, str]] = []
+    notes: list[str] = []
+    limits: list[str] = []
+    if not any(_perturbation_present(r) for r in records):
+        raise DiagnosisError(
+            "no perturbation in the data (the perturbation torque is zero or constant in every "
+            "trial): a simulation driven by the measured perturbation has nothing to reproduce. "
+            "What can still be said without a perturbation: grip-force levels per condition, "
+            "and the wheel angle's spread, neither of which tests the arm model."
+        )
+    chosen: dict[tuple[str, str, int, bool], TrialRecord] = {}
+    for r in records:
+        if r.status != STATUS_COMPLETE:
+            skipped.append((r.label(), f"status {r.status}"))
+            continue
+        if not _perturbation_present(r):
+            skipped.append((r.label(), "no perturbation in this trial"))
+            continue
+        key = (r.subject, r.condition, r.repetition, r.familiarization)
+        old = chosen.get(key)
+        if old is not None:
+            later = (r.trial_index or 0) >= (old.trial_index or 0)
+            drop = old if later else r
+            skipped.append((drop.label(), "duplicate; the later attempt is used"))
+            if not later:
+                continue
+        chosen[key] = r
+    trials: list[TrialData] = []
+    fam: list[TrialData] = []
+    short: list[str] = []
+    for r in chosen.values():
+        try:
+            t = prepare_trial(r)
+        except ValueError as e:
+            msg = str(e)
+            skipped.append((r.label(), msg))
+            if "shorter than one perturbation period" in msg or "no whole perturbation" in msg:
+                short.append(r.label())
+            continue
+        (fam if t.familiarization else trials).append(t)
+    if not trials:
+        why = "; ".join(f"{lab}: {reason}" for lab, reason in skipped[:6])
+        hint = ""
+        if short:
+            hint = (
+                " Every trial is shorter than one perturbation period: the diagnosis compares "
+                "whole periods (the design's excited frequencies are only exact over a whole "
+                "period), so it needs at least one."
+            )
+        raise DiagnosisError(f"no measured trial can be diagnosed ({why}).{hint}")
+    fs = {t.fs_hz for t in trials}
+    if len(fs) > 1:
+        notes.append(
+            f"trials recorded at several rates ({sorted(fs)} Hz); each is simulated at its own"
+        )
+    trials.sort(key=lambda t: (t.subject, t.trial_index or 0, t.condition, t.repetition))
+    _cell_fits(trials)
+    fam.sort(key=lambda t: (t.subject, t.trial_index or 0))
+    _check_rig(trials)
+    prep = PreparedStudy(trials, fam, skipped, notes, limits)
+    if not prep.has_held_out:
+        limits.append(
+            "only one measured repetition per subject × condition: no held-out check is "
+            "possible, so causes rest on in-sample evidence (BIC) alone, with a stricter "
+            "threshold; record two repetitions to validate them"
+        )
+    if len(prep.conditions) == 1:
+        limits.append(
+            f"a single condition ({prep.conditions[0]}): the diagnosis cannot compare operating "
+            "points, so an amplitude-dependent stiffness is told from a stiffer arm only by "
+            "its distortion, not by how the stiffness changes between conditions"
+        )
+    if any(t.trial_index is None for t in trials):
+        limits.append("trial order unknown for some trials: the drift check leaves them out")
+    return prep
+
+
+def _cell_fits(trials: Sequence[TrialData]) -> None:
+    cells: dict[tuple[str, str], list[TrialData]] = {}
+    for t in trials:
+        cells.setdefault(t.cell, []).append(t)
+    for items in cells.values():
+        try:
+            fit = fit_arm(frequency_response([t.spectra for t in items]))
+        except ValueError:
+            continue
+        arm = ArmParams(**fit.params.as_dict())
+        for t in items:
+            t.arm_cell = arm
+
+
+def wheel_fit(
+    trials: Sequence[TrialData], f_max_hz: float = RIG_CHECK_MAX_HZ
+) -> tuple[dict[str, float], float]:
+    """The wheel's I, b, k fitted from Tp − Td = (I s² + b s + k) θ at the excited bins below
+    ``f_max_hz``, and the relative misfit of the rig's own wheel (Table 1) there."""
+    rows, rhs, err, tot = [], [], 0.0, 0.0
+    for t in trials:
+        m = t.excited & (t.freqs_hz < f_max_hz)
+        s = 2j * np.pi * t.freqs_hz[m]
+        th = t.Y[0, m]
+        lhs = t.Tp[m] - t.Y[1, m]
+        w = 1.0 / np.maximum(np.abs(t.Tp[m]), 1e-9)  # each bin relative to its excitation
+        A = np.stack([s**2 * th, s * th, th], axis=1) * w[:, None]
+        rows.append(np.concatenate([A.real, A.imag]))
+        b = lhs * w
+        rhs.append(np.concatenate([b.real, b.imag]))
+        err += float(np.sum(np.abs((lhs - t.Zw[m] * th) * w) ** 2))
+        tot += float(np.sum(np.abs(lhs * w) ** 2))
+    A = np.concatenate(rows)
+    b = np.concatenate(rhs)
+    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    return {
+        "I_kgm2": float(sol[0]),
+        "b_Nms_per_rad": float(sol[1]),
+        "k_Nm_per_rad": float(sol[2]),
+    }, math.sqrt(err / tot) if tot > 0 else float("nan")
+
+
+def _check_rig(trials: Sequence[TrialData]) -> None:
+    """Refuse data whose wheel is not the rig's rendered wheel, or with another sign convention."""
+    # Low-frequency admittance must be positive with Steerlab's sign convention.
+    re = []
+    for t in trials:
+        m = t.excited & (t.freqs_hz < 0.5)
+        if m.any():
+            re.append(
+                np.real(np.sum(np.conj(t.Tp[m]) * t.Y[0, m]) / np.sum(np.conj(t.Tp[m]) * t.Y[1, m]))
+            )
+    if re and np.median(re) < 0:
+        raise DiagnosisError(
+            "the admittance θ/Td is negative at low frequency: the driver-torque sign is "
+            "opposite to Steerlab's convention (driver_torque_Nm is the torque the wheel exerts "
+            "on the hands; docs/data-format.md). Flip it on import; nothing else is wrong."
+        )
+    fitted, misfit = wheel_fit(trials)
+    if not misfit <= RIG_MISMATCH_LIMIT:
+        w = VirtualWheel()
+        raise DiagnosisError(
+            "the data do not come from the rig the simulator models: at the excited "
+            "frequencies Tp − Td differs from the wheel's rendered dynamics "
+            f"({WHEEL_INERTIA_KGM2} kg·m², {w.damping_nms_per_rad} N·m·s/rad, "
+            f"{w.stiffness_nm_per_rad} N·m/rad) times the angle by {100 * misfit:.0f} % "
+            f"(fitted from the data: I = {fitted['I_kgm2']:.3g} kg·m², "
+            f"b = {fitted['b_Nms_per_rad']:.3g} N·m·s/rad, k = {fitted['k_Nm_per_rad']:.3g} "
+            "N·m/rad); check the sign conventions of driver_torque_Nm and wheel_angle_rad "
+            "(docs/data-format.md). What can still be said: the admittance θ/Td does not "
+            "depend on the wheel, so `steerlab report` still estimates it and fits the arm model."
+        )

@@ -1,0 +1,430 @@
+"""Naming the cause: fit every candidate, keep what predicts held-out data and wins on BIC.
+
+Set-up (:func:`build_setup`)
+    1. The wheel's impedance as the world computes it, per trial.
+    2. The baseline (the paper's linear arm, plus the mechanisms of a model file when the
+       diagnosis starts from one) fitted per trial from the best of several start values
+       (the trial's own FRF fit, the subject × condition FRF fit, nominal values).
+    3. The noise model from the baseline's residual at the unexcited bins; fixed from then on,
+       so every model is judged by the same weights.
+    4. Remnant realisations for nonlinear candidates (:mod:`analysis.diagnosis.simulate`).
+
+Greedy forward selection (:func:`select`)
+    At each step every remaining candidate is added to the current model and fitted:
+
+    - on all trials: Δ(−2 log L) and ΔBIC = Δ(−2 log L) + Δp·ln n (n: complex residual values);
+    - held out, by repetition: fitted on repetition A (its per-trial arms and the mechanism's
+      parameters), then on repetition B the mechanism's parameters stay as A gave them and
+      only B's own arm parameters, which every model has, are re-estimated. The held-out gain
+      is the drop of B's −2 log L against the current model treated the same way, summed
+      over the folds. A mechanism fitted to noise does not carry over and loses there.
+
+    A candidate is retained when its ΔBIC < −``MIN_DBIC``, its held-out gain
+    > ``MIN_HELD_OUT``, and its parameters stand out from zero by more than ``MIN_ROBUST_Z``
+    cluster-robust standard errors (trials as clusters: guards against an improvement that
+    rests on a few trials, which the likelihood's noise model would over-count); of several,
+    the one with the largest held-out gain. It joins the model
+    and the next step starts; the selection stops when no candidate passes, or after
+    ``MAX_MECHANISMS``; candidates that improved nothing at the first step are not re-tried.
+    Without two repetitions there is no held-out check, and the ΔBIC
+    threshold is ``MIN_DBIC_NO_HELD_OUT`` instead.
+
+Drift is judged separately, on the per-trial arm parameters (:mod:`analysis.diagnosis.drift`).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import math
+from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from analysis.diagnosis.candidates import CANDIDATES, Candidate, candidate
+from analysis.diagnosis.data import PreparedStudy, TrialData
+from analysis.diagnosis.fit import (
+    FitResult,
+    ModelSpec,
+    NoiseModel,
+    best_start_arms,
+    fit_model,
+    noise_model,
+)
+from analysis.diagnosis.simulate import (
+    kernel_wheel_impedance,
+    needs_remnant,
+    reconstruct_remnant,
+    simulated_spectra,
+)
+from hardware.sim.mechanisms import Mechanisms
+from hardware.sim.physiology import NOMINAL, ArmParams
+
+MIN_DBIC = 10.0  # "very strong" evidence on Kass & Raftery's scale
+MIN_HELD_OUT = 5.0  # −2 log L units, summed over the folds
+MIN_DBIC_NO_HELD_OUT = 30.0
+# The likelihood assumes the noise model; a parameter whose improvement rests on a few trials
+# passes BIC but not a cluster-robust Wald test (trials as clusters): z must exceed this.
+MIN_ROBUST_Z = 3.0
+MAX_MECHANISMS = 3
+# Candidates are re-evaluated at later steps only if they improved −2 log L by more than this
+# at the first step (χ²₁ above 6: p ≈ 0.014): masking that strong is not expected.
+RETRY_MIN_DELTA_M2LL = 6.0
+K_REMNANT_SELECT = 1  # remnant realisations (± pairs) while screening candidates …
+K_REMNANT_FINAL = 8  # … and for the retained model's parameters (see simulate.py)
+
+Progress = Callable[[str], None]
+
+
+@dataclass
+class Setup:
+    trials: list[TrialData]
+    fam: list[TrialData]
+    noise: NoiseModel
+    fs_ref: float
+    base_mech: Mechanisms
+    base: FitResult
+    paper_arms: dict[str, ArmParams]  # the FRF fit per subject × condition (the paper's)
+    folds: list[tuple[list[TrialData], list[TrialData]]]  # (train, test) by repetition
+    n_remnant: int = K_REMNANT_SELECT
+    final_noise: NoiseModel | None = None  # from the retained model's residual
+
+    def spec(self, free: Sequence[Candidate] = ()) -> ModelSpec:
+        return ModelSpec(self.base_mech, tuple(free), self.fs_ref)
+
+
+def _degenerate(arm: ArmParams) -> bool:
+    from analysis.armfit import BOUNDS
+
+    return any(
+        not (1.05 * BOUNDS[n][0] < getattr(arm, n) < BOUNDS[n][1] / 1.05)
+        for n in ("b_i", "k_i", "b_c", "k_c")
+    )
+
+
+def plausible_arm(t: TrialData, model_baseline: dict | None = None) -> ArmParams:
+    """The trial's subject × condition FRF fit unless it ran into a bound; else the model
+    file's or the simulator's nominal arm for the condition; else a mid-range arm."""
+    for arm in (t.arm_cell, t.arm0):
+        if not _degenerate(arm):
+            return arm
+    for source in (model_baseline or {}, NOMINAL):
+        if t.condition in source:
+            return source[t.condition].arm
+    from analysis.diagnosis.data import FALLBACK_ARM
+
+    return FALLBACK_ARM
+
+
+def set_remnants(trials: Sequence[TrialData], arms: dict[str, ArmParams], k: int) -> None:
+    for t in trials:
+        t.remnant = [reconstruct_remnant(t, arms[t.label], seed=i) for i in range(k)]
+
+
+def build_setup(
+    prep: PreparedStudy,
+    base_mech: Mechanisms,
+    model_baseline: dict | None = None,
+    progress: Progress | None = None,
+) -> Setup:
+    trials = prep.trials
+    fs_ref = float(np.median([t.fs_hz for t in trials]))
+    spec0 = ModelSpec(base_mech, (), fs_ref)
+    if progress:
+        progress("wheel impedance")
+    # The wheel impedance barely depends on the arm (0.1–0.3 %), but an FRF fit that ran into
+    # its bounds (a rigid contact) makes the discretised loop meaningless: start from a
+    # plausible arm, and recompute with the fitted one.
+    plausible = {t.label: plausible_arm(t, model_baseline) for t in trials + prep.familiarization}
+    for t in trials + prep.familiarization:
+        t.Zw = kernel_wheel_impedance(t, plausible[t.label], base_mech)
+    noise0 = noise_model(
+        trials, {t.label: simulated_spectra(t, plausible[t.label], base_mech) for t in trials}
+    )
+    starts = [{t.label: t.arm0 for t in trials}, {t.label: t.arm_cell for t in trials}]
+    for source in (model_baseline or {}, NOMINAL):
+        if all(t.condition in source for t in trials):
+            starts.append({t.label: source[t.condition].arm for t in trials})
+    if progress:
+        progress("baseline fit")
+    arms = best_start_arms(trials, spec0, noise0, starts)
+    first = fit_model(trials, spec0, noise0, arms)
+    for t in trials:
+        t.Zw = kernel_wheel_impedance(t, first.arms[t.label], base_mech)
+    noise = noise_model(trials, first.simulated)
+    set_remnants(trials, first.arms, K_REMNANT_SELECT)
+    base = fit_model(trials, spec0, noise, first.arms)
+    reps = sorted({t.repetition for t in trials})
+    folds = []
+    if len(reps) >= 2:
+        for r in reps:
+            train = [t for t in trials if t.repetition == r]
+            test = [t for t in trials if t.repetition != r]
+            if train and test:
+                folds.append((train, test))
+    return Setup(
+        trials=trials,
+        fam=prep.familiarization,
+        noise=noise,
+        fs_ref=fs_ref,
+        base_mech=base_mech,
+        base=base,
+        paper_arms={t.label: t.arm_cell for t in trials},
+        folds=folds,
+    )
+
+
+@dataclass
+class CandidateResult:
+    name: str
+    step: int
+    fit: FitResult
+    delta_m2ll: float  # −2 log L of the current model minus the candidate's (> 0: better)
+    delta_bic: float  # candidate − current (< 0: better)
+    held_out_gain: float | None  # −2 log L units, summed over folds (> 0: better)
+    held_out_folds: list[float] = field(default_factory=list)
+    passed: bool = False
+    reason: str = ""
+    fold_x: list[np.ndarray] = field(default_factory=list, repr=False)
+    fold_cost: list[float] = field(default_factory=list, repr=False)
+    robust_z: float = float("nan")
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "step": self.step,
+            "parameters": [p for p in self.fit.parameters() if p["mechanism"] == self.name],
+            "delta_minus2loglik": self.delta_m2ll,
+            "delta_bic": self.delta_bic,
+            "held_out_gain_minus2loglik": self.held_out_gain,
+            "held_out_folds": self.held_out_folds,
+            "robust_z": self.robust_z,
+            "passed": self.passed,
+            "reason": self.reason,
+            "iterations": self.fit.iterations,
+            "converged": self.fit.converged,
+        }
+
+
+@dataclass
+class Current:
+    """The model a step adds to: its spec, full fit and held-out fold results."""
+
+    spec: ModelSpec
+    fit: FitResult
+    fold_x: list[np.ndarray]  # mechanism coordinates fitted on each fold's training trials
+    fold_test_cost: list[float]  # −2 log L on each fold's test trials
+
+
+def _fold_eval(
+    setup: Setup,
+    spec: ModelSpec,
+    arms: dict[str, ArmParams],
+    x_starts: Sequence[np.ndarray] | None = None,
+) -> tuple[list[np.ndarray], list[float]]:
+    """Per fold: the mechanism coordinates fitted on the training trials (from ``x_starts``,
+    never from a fit that saw the test trials), and −2 log L on the test trials with them."""
+    xs, costs = [], []
+    for i, (train, test) in enumerate(setup.folds):
+        if spec.n_free:
+            x0 = None if x_starts is None else x_starts[i]
+            x = fit_model(train, spec, setup.noise, arms, x0=x0).x
+        else:
+            x = spec.off()
+        te = fit_model(test, spec, setup.noise, arms, x0=x, fix_mechanisms=True)
+        xs.append(x)
+        costs.append(te.m2ll)
+    return xs, costs
+
+
+def make_current(
+    setup: Setup, spec: ModelSpec, fit: FitResult, x_starts: Sequence[np.ndarray] | None = None
+) -> Current:
+    xs, costs = _fold_eval(setup, spec, fit.arms, x_starts)
+    return Current(spec, fit, xs, costs)
+
+
+def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> CandidateResult:
+    cand = candidate(name)
+    spec = ModelSpec(current.spec.base, current.spec.free + (cand,), current.spec.fs_ref)
+    x0 = np.concatenate([current.fit.x, spec.start()[current.spec.n_free :]])
+    fit = fit_model(setup.trials, spec, setup.noise, current.fit.arms, x0=x0)
+    d_m2ll = current.fit.m2ll - fit.m2ll
+    d_bic = fit.bic - current.fit.bic
+    gain = None
+    folds: list[float] = []
+    xs: list[np.ndarray] = []
+    costs: list[float] = []
+    if setup.folds:
+        new = spec.start()[current.spec.n_free :]
+        starts = [np.concatenate([x, new]) for x in current.fold_x]
+        xs, costs = _fold_eval(setup, spec, current.fit.arms, starts)
+        folds = [c0 - c1 for c0, c1 in zip(current.fold_test_cost, costs, strict=True)]
+        gain = float(sum(folds))
+    return CandidateResult(
+        name, step, fit, float(d_m2ll), float(d_bic), gain, folds, fold_x=xs, fold_cost=costs
+    )
+
+
+def robust_z(r: CandidateResult) -> float:
+    """How far the candidate's parameters are from "as before" (0, or the model file's value),
+    in cluster-robust standard errors (the largest over its parameters)."""
+    spec = r.fit.spec
+    off = spec.physical(spec.off(), None)
+    z = 0.0
+    for p, o in zip(r.fit.parameters(), off, strict=True):
+        if p["mechanism"] != r.name:
+            continue
+        se = p["se"]
+        if se and np.isfinite(se) and se > 0:
+            z = max(z, abs(p["value"] - o["value"]) / se)
+    return float(z)
+
+
+def judge(results: Sequence[CandidateResult], held_out: bool) -> None:
+    for r in results:
+        r.robust_z = robust_z(r)
+        ok_z = r.robust_z > MIN_ROBUST_Z
+        if held_out:
+            ok_bic = r.delta_bic < -MIN_DBIC
+            ok_ho = r.held_out_gain is not None and r.held_out_gain > MIN_HELD_OUT
+            r.passed = ok_bic and ok_ho and ok_z
+            if r.passed:
+                r.reason = "better on BIC and on held-out data"
+            elif ok_bic and ok_ho:
+                r.reason = (
+                    "better on BIC and held out, but its parameter does not stand out from "
+                    f"the trial-to-trial scatter (robust z = {r.robust_z:.1f})"
+                )
+            elif ok_bic:
+                r.reason = "better on BIC, but does not predict the other repetition"
+            elif ok_ho:
+                r.reason = "predicts held-out data a little better, but not enough for BIC"
+            else:
+                r.reason = "no better than the model without it"
+        else:
+            r.passed = r.delta_bic < -MIN_DBIC_NO_HELD_OUT and ok_z
+            r.reason = (
+                "better on BIC (no held-out check possible)" if r.passed else "not better on BIC"
+            )
+
+
+# -- parallel evaluation ------------------------------------------------------------------------
+_WORKER_SETUP: Setup | None = None
+
+
+def _init_worker(setup: Setup) -> None:
+    global _WORKER_SETUP
+    _limit_threads()
+    _WORKER_SETUP = setup
+
+
+def _limit_threads() -> AbstractContextManager:
+    """One BLAS thread while in effect (as a context manager; called bare, for good).
+
+    Tiny matrices everywhere (the world's 7×7 matrix exponential per trial): BLAS threads only
+    add overhead, 70× for expm on a loaded 2-core machine.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+
+        return threadpool_limits(1)
+    except ImportError:  # optional: only speed depends on it
+        return nullcontext()
+
+
+def _worker_eval(current: Current, name: str, step: int) -> CandidateResult:
+    assert _WORKER_SETUP is not None
+    return evaluate_candidate(_WORKER_SETUP, current, name, step)
+
+
+@dataclass
+class Selection:
+    steps: list[list[CandidateResult]]
+    retained: list[CandidateResult]
+    final: FitResult
+    final_spec: ModelSpec
+    base: FitResult
+    final_fold_x: list[np.ndarray]  # the final model's mechanisms fitted on each fold
+    # The retained model as selected: fitted with the same noise model as the baseline and
+    # every candidate, so its −2 log L and BIC compare with theirs (``final`` is re-fitted
+    # with the noise re-estimated from its own residual, for its parameters).
+    final_as_selected: FitResult | None = None
+
+
+def select(
+    setup: Setup,
+    names: Sequence[str] | None = None,
+    jobs: int = 1,
+    progress: Progress | None = None,
+) -> Selection:
+    pool = [c.name for c in CANDIDATES] if names is None else list(names)
+    current = make_current(setup, setup.spec(), setup.base)
+    steps: list[list[CandidateResult]] = []
+    retained: list[CandidateResult] = []
+    executor = None
+    if jobs > 1:
+        executor = cf.ProcessPoolExecutor(
+            max_workers=jobs, initializer=_init_worker, initargs=(setup,)
+        )
+    try:
+        for step in range(1, MAX_MECHANISMS + 1):
+            remaining = [n for n in pool if n not in current.spec.names]
+            if steps:
+                # A mechanism that improved nothing at the first step is not tried again:
+                # after a nonlinear mechanism every evaluation costs several simulations.
+                first = {r.name: r for r in steps[0]}
+                remaining = [
+                    n for n in remaining
+                    if n not in first or first[n].delta_m2ll > RETRY_MIN_DELTA_M2LL
+                ]  # fmt: skip
+            if not remaining:
+                break
+            if progress:
+                progress(f"step {step}: {len(remaining)} candidates")
+            if executor is not None:
+                futs = [executor.submit(_worker_eval, current, n, step) for n in remaining]
+                results = [f.result() for f in futs]
+            else:
+                results = []
+                for n in remaining:
+                    if progress:
+                        progress(f"step {step}: {n}")
+                    results.append(evaluate_candidate(setup, current, n, step))
+            judge(results, held_out=bool(setup.folds))
+            steps.append(results)
+            passing = [r for r in results if r.passed]
+            if not passing:
+                break
+            key = (lambda r: r.held_out_gain) if setup.folds else (lambda r: -r.delta_bic)
+            best = max(passing, key=key)
+            retained.append(best)
+            current = Current(best.fit.spec, best.fit, best.fold_x, best.fold_cost)
+    finally:
+        if executor is not None:
+            executor.shutdown()
+    final_spec = current.spec
+    final = current.fit
+    if final_spec.n_free:
+        # The retained model's parameters: with the noise re-estimated from its own residual
+        # (the baseline's residual holds the distortion the mechanism explains, which
+        # under-weights the unexcited bins), and for a nonlinear mechanism from more remnant
+        # realisations (one biases its parameters towards zero by a few per cent).
+        if progress:
+            progress("final fit")
+        if needs_remnant(final_spec.mechanisms(final.x)) and K_REMNANT_FINAL > setup.n_remnant:
+            set_remnants(setup.trials, final.arms, K_REMNANT_FINAL)
+            setup.n_remnant = K_REMNANT_FINAL
+        setup.final_noise = noise_model(setup.trials, final.simulated)
+        final = fit_model(setup.trials, final_spec, setup.final_noise, final.arms, x0=final.x)
+    return Selection(steps, retained, final, final_spec, setup.base, current.fold_x, current.fit)
+
+
+def refit_noise(setup: Setup, fit: FitResult) -> NoiseModel:
+    """The noise model re-estimated from a fitted model's residual (for the final checks)."""
+    return noise_model(setup.trials, fit.simulated)
+
+
+def log_n(fit: FitResult) -> float:
+    return math.log(max(fit.n_obs, 2))

@@ -1,0 +1,720 @@
+"""``steerlab diagnose``: the whole diagnosis of a study directory (see docs/diagnosis.md)."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from analysis.diagnosis import compare as C
+from analysis.diagnosis.candidates import CANDIDATE_NAMES
+from analysis.diagnosis.data import DiagnosisError, PreparedStudy, TrialData, prepare_study
+from analysis.diagnosis.drift import DriftResult, TrialStiffness, analyse_drift
+from analysis.diagnosis.engine import (
+    Selection,
+    Setup,
+    _limit_threads,
+    build_setup,
+    plausible_arm,
+    select,
+    set_remnants,
+)
+from analysis.diagnosis.fit import (
+    FitResult,
+    best_start_arms,
+    fit_model,
+    noise_model,
+    residual_vectors,
+    whitened_power,
+)
+from analysis.diagnosis.simulate import remnant_spectrum_fit, simulated_spectra
+from hardware.sim.mechanisms import Drift, Mechanisms
+from hardware.sim.model_file import (
+    ARM_KEYS,
+    baseline_from_model,
+    mechanisms_from_model,
+    read_model_file,
+    world_model_text,
+)
+from hardware.sim.physiology import ArmParams
+from protocols.datafile import load_study
+
+ProgressCallback = Callable[[int, int, str], None]
+
+# "Unexplained": what is left after the retained mechanisms, judged against the noise.
+UNEXPLAINED_EXCITED_RATIO = 1.5  # whitened power at the excited bins, × the noise level …
+UNEXPLAINED_EXCITED_Z = 6.0  # … and this far above it (z-score), in either channel
+UNEXPLAINED_REPEAT_RATIO = 0.1  # repeatable share of the unexcited power …
+UNEXPLAINED_REPEAT_Z = 6.0  # … and its z-score against zero
+
+
+@dataclass
+class DiagnosisResult:
+    """What ``run_diagnosis`` found; ``to_dict()`` is diagnosis.json."""
+
+    cause: str
+    causes: list[str]
+    candidates: dict[str, dict]
+    gain: dict
+    comparison: dict
+    unexplained: dict | None
+    data: dict
+    notes: list[str]
+    limits: list[str]
+    out_dir: Path | None = None
+    model_path: Path | None = None
+    timing_s: dict = field(default_factory=dict)
+    baseline_model: str | None = None
+
+    def to_dict(self) -> dict:
+        return _clean(
+            {
+                "format": "steerlab-diagnosis",
+                "format_version": 1,
+                "cause": self.cause,
+                "causes": self.causes,
+                "baseline_model": self.baseline_model,
+                "candidates": self.candidates,
+                "gain": self.gain,
+                "unexplained": self.unexplained,
+                "comparison": self.comparison,
+                "data": self.data,
+                "notes": self.notes,
+                "limits": self.limits,
+                "model_file": str(self.model_path) if self.model_path else None,
+                "timing_s": self.timing_s,
+            }
+        )
+
+    def summary(self) -> str:
+        lines = [f"cause: {self.cause}"]
+        if len(self.causes) > 1:
+            lines.append("all causes (strongest first): " + ", ".join(self.causes))
+        for name in self.causes:
+            c = self.candidates.get(name, {})
+            for p in c.get("parameters", []):
+                lo, hi = p["ci95"]
+                lines.append(
+                    f"  {name}.{p['parameter']} = {_fmt(p['value'])} {p['unit']} "
+                    f"(95 % {_fmt(lo)} … {_fmt(hi)})"
+                )
+        g = self.gain.get("overall", {})
+        signal = [c for c in self.causes if c not in ("drift", "unexplained")]
+        if signal and g:
+            lines.append(
+                "held-out gain: VAF angle {:+.2f} pp, VAF torque {:+.2f} pp, FIT {:+.2f} pp; "
+                "ΔBIC {:.1f}".format(
+                    g.get("vaf_theta_pp", float("nan")),
+                    g.get("vaf_td_pp", float("nan")),
+                    g.get("fit_pp", float("nan")),
+                    self.gain.get("delta_bic", float("nan")),
+                )
+            )
+        d = self.gain.get("drift")
+        if d:
+            lines.append(
+                "held-out gain of the drift term: VAF angle {:+.2f} pp, VAF torque {:+.2f} pp; "
+                "ΔBIC {:.1f}".format(d["vaf_theta_pp"], d["vaf_td_pp"], d["delta_bic"])
+            )
+        if self.unexplained and self.unexplained.get("description"):
+            lines.append("unexplained residual: " + self.unexplained["description"])
+        for lim in self.limits:
+            lines.append(f"limit: {lim}")
+        if self.out_dir is not None:
+            lines.append(f"report: {self.out_dir / 'index.html'}")
+        if self.model_path is not None:
+            lines.append(f"model: {self.model_path}")
+        return "\n".join(lines)
+
+
+def _fmt(v: Any) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    return f"{v:.4g}"
+
+
+def _clean(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_clean(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _clean(x.tolist())
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+class _Stages:
+    """Coarse progress: one tick per stage."""
+
+    STAGES = ("load", "baseline", "candidates", "drift", "compare", "report")
+
+    def __init__(self, cb: ProgressCallback | None) -> None:
+        self.cb = cb
+        self.i = 0
+
+    def __call__(self, label: str) -> None:
+        if self.cb is not None:
+            self.cb(min(self.i, len(self.STAGES)), len(self.STAGES), label)
+
+    def next(self, label: str) -> None:
+        self.i += 1
+        self(label)
+
+
+def run_diagnosis(
+    directory: str | Path,
+    out: str | Path | None,
+    *,
+    jobs: int | None = 1,
+    progress: ProgressCallback | None = None,
+    model: str | Path | None = None,
+    candidates: tuple[str, ...] | None = None,
+) -> DiagnosisResult:
+    """Diagnose the session files in ``directory``; write diagnosis.json, index.html and
+    model.toml into ``out`` (unless None). ``model``: a model file whose mechanisms become the
+    baseline (see docs/diagnosis.md: "diagnosing the extended model")."""
+    with _limit_threads():
+        return _run(directory, out, jobs, progress, model, candidates)
+
+
+def _run(
+    directory: str | Path,
+    out: str | Path | None,
+    jobs: int | None,
+    progress: ProgressCallback | None,
+    model: str | Path | None,
+    candidates: tuple[str, ...] | None,
+) -> DiagnosisResult:
+    t0 = time.perf_counter()
+    timing: dict[str, float] = {}
+    stages = _Stages(progress)
+    stages("load")
+    records = load_study(directory)
+    prep = prepare_study(records)
+    base_mech = Mechanisms()
+    model_baseline = None
+    base_drift = 0.0
+    if model is not None:
+        data = read_model_file(model)
+        base_mech = mechanisms_from_model(data, str(model))
+        model_baseline = baseline_from_model(data, str(model))
+        base_drift = base_mech.drift.rate_per_trial
+    names = tuple(candidates) if candidates is not None else CANDIDATE_NAMES
+    unknown = set(names) - set(CANDIDATE_NAMES)
+    if unknown:
+        raise DiagnosisError(f"unknown candidate(s) {sorted(unknown)}; known: {CANDIDATE_NAMES}")
+    timing["load"] = time.perf_counter() - t0
+
+    stages.next("baseline")
+    t1 = time.perf_counter()
+    setup = build_setup(prep, base_mech, model_baseline)
+    timing["baseline"] = time.perf_counter() - t1
+
+    stages.next("candidates")
+    t1 = time.perf_counter()
+    signal_names = [n for n in names if n != "drift"]
+    sel = select(setup, signal_names, jobs=max(1, jobs or 1))
+    timing["candidates"] = time.perf_counter() - t1
+
+    stages.next("drift")
+    t1 = time.perf_counter()
+    fam_arms = _fit_familiarization(setup, sel)
+    drift = None
+    if "drift" in names:
+        drift = analyse_drift(_stiffness_rows(setup, sel.final, fam_arms), r0=base_drift)
+    timing["drift"] = time.perf_counter() - t1
+
+    stages.next("compare")
+    t1 = time.perf_counter()
+    result = _assemble(prep, setup, sel, drift, fam_arms, base_mech, model)
+    timing["compare"] = time.perf_counter() - t1
+
+    if out is not None:
+        stages.next("report")
+        t1 = time.perf_counter()
+        out_dir = Path(out)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        result.out_dir = out_dir
+        result.model_path = out_dir / "model.toml"
+        result.model_path.write_text(_model_text(prep, setup, sel, drift, result), "utf-8")
+        from analysis.diagnosis.report import write_html
+
+        # The page shows the analysis' time; diagnosis.json gets the report's too.
+        _close_timing(timing, t0, prep)
+        result.timing_s = timing
+        write_html(out_dir / "index.html", result, prep, setup, sel, drift)
+        timing["report"] = time.perf_counter() - t1
+        _close_timing(timing, t0, prep)
+        (out_dir / "diagnosis.json").write_text(json.dumps(result.to_dict(), indent=1), "utf-8")
+    else:
+        _close_timing(timing, t0, prep)
+        result.timing_s = timing
+    stages.next("done")
+    return result
+
+
+# -- helpers --------------------------------------------------------------------------------------
+def _close_timing(timing: dict[str, float], t0: float, prep: PreparedStudy) -> None:
+    timing["total"] = time.perf_counter() - t0
+    timing["per_subject"] = timing["total"] / max(len(prep.subjects), 1)
+
+
+def _fit_familiarization(setup: Setup, sel: Selection) -> dict[str, ArmParams]:
+    """Per-trial arms of the familiarization trials (drift axis only), fitted exactly as the
+    measured trials' (same start values, two-stage noise model, as many remnant realisations
+    for a nonlinear model), with the retained mechanisms fixed. A different treatment would
+    bias the first trial of every condition, which the drift test would read as a trend."""
+    fam = setup.fam
+    if not fam:
+        return {}
+    spec = sel.final_spec
+    mech = spec.mechanisms(sel.final.x)
+    x = sel.final.x
+    for t in fam:
+        t.remnant = []
+    start = {t.label: plausible_arm(t) for t in fam}
+    noise = noise_model(fam, {t.label: simulated_spectra(t, start[t.label], mech) for t in fam})
+    arms = best_start_arms(fam, spec, noise, [start, {t.label: t.arm0 for t in fam}], x=x)
+    first = fit_model(fam, spec, noise, arms, x0=x, fix_mechanisms=True)
+    set_remnants(fam, first.arms, setup.n_remnant)
+    noise = noise_model(fam, first.simulated)
+    return fit_model(fam, spec, noise, first.arms, x0=x, fix_mechanisms=True).arms
+
+
+def _stiffness_rows(
+    setup: Setup, final: FitResult, fam_arms: dict[str, ArmParams]
+) -> list[TrialStiffness]:
+    rows = []
+    for t in setup.trials + setup.fam:
+        arm = final.arms.get(t.label) or fam_arms.get(t.label)
+        if arm is None or t.trial_index is None:
+            continue
+        rows.append(
+            TrialStiffness(t.label, t.cell, int(t.trial_index), t.repetition, arm.k_i, arm.k_c)
+        )
+    return rows
+
+
+def _unexplained(setup: Setup, fit: FitResult) -> dict | None:
+    """Is a clear residual left? Judged with the noise re-estimated from ``fit``'s residual."""
+    noise = noise_model(setup.trials, fit.simulated)
+    exc = np.zeros(2)
+    n_exc = 0
+    by_cond: dict[str, list[float]] = {}
+    by_freq: dict[str, list[float]] = {}
+    for t in setup.trials:
+        p = whitened_power(t, noise[t.label], fit.simulated[t.label])
+        exc += p[:, t.excited].sum(axis=1)
+        n_exc += int(np.count_nonzero(t.excited))
+        by_cond.setdefault(t.condition, []).append(float(p[:, t.excited].mean()))
+        f = t.freqs_hz[t.excited]
+        pe = p[:, t.excited].mean(axis=0)
+        for lo, hi in zip(C.FREQ_EDGES_HZ[:-1], C.FREQ_EDGES_HZ[1:], strict=True):
+            m = (f >= lo) & (f < hi)
+            if m.any():
+                by_freq.setdefault(f"{lo:g}–{hi:g} Hz", []).append(float(pe[m].mean()))
+    ratio = exc / max(n_exc, 1)
+    # Σ|z|² over n complex values: mean n, SD √n (exponential terms).
+    z_exc = (exc - n_exc) / math.sqrt(max(n_exc, 1))
+    resid = {t.label: residual_vectors(t, fit.simulated[t.label]) for t in setup.trials}
+    dist = C.distortion_table(setup.trials, resid, noise)
+    rep_x = rep_n = 0.0
+    rep_worst = None
+    for r in dist["rows"]:
+        if r["repeatable_vs_noise"] is None:
+            continue
+        nb = r["n_bins"]
+        rep_x += r["repeatable_vs_noise"] * nb
+        rep_n += nb
+        if rep_worst is None or (r["repeatable_z"] or 0) > (rep_worst["repeatable_z"] or 0):
+            rep_worst = r
+    rep_ratio = rep_x / rep_n if rep_n else 0.0
+    rep_z = rep_x / math.sqrt(rep_n / 2.0) if rep_n else 0.0
+    flags = []
+    channels = ("the wheel angle", "the wheel's equation (Tp − Td − wheel dynamics × θ)")
+    for ch in range(2):
+        if ratio[ch] > UNEXPLAINED_EXCITED_RATIO and z_exc[ch] > UNEXPLAINED_EXCITED_Z:
+            worst_c = max(by_cond, key=lambda c: np.mean(by_cond[c]))
+            worst_f = max(by_freq, key=lambda k: np.mean(by_freq[k]))
+            flags.append(
+                f"at the excited frequencies {channels[ch]} differs from the model by "
+                f"{ratio[ch]:.1f}× the noise power (worst in {worst_c}, at {worst_f})"
+            )
+    if rep_ratio > UNEXPLAINED_REPEAT_RATIO and rep_z > UNEXPLAINED_REPEAT_Z and rep_worst:
+        kind = {
+            "harmonic2": "even-order (second-harmonic lines)",
+            "harmonic3": "odd-order (third-harmonic lines)",
+            "other": "intermodulation lines",
+        }[rep_worst["lines"]]
+        flags.append(
+            "at unexcited frequencies a residual repeats from one repetition to the other "
+            f"({100 * rep_ratio:.0f} % of the noise power; strongest: {kind}, "
+            f"{rep_worst['channel']}, {rep_worst['f_lo_Hz']:g}–{rep_worst['f_hi_Hz']:g} Hz, "
+            f"{rep_worst['condition']}): a deterministic response to the perturbation that the "
+            "model does not produce"
+        )
+    stats = {
+        "excited_power_vs_noise": {"angle": ratio[0], "wheel_equation": ratio[1]},
+        "excited_z": {"angle": z_exc[0], "wheel_equation": z_exc[1]},
+        "excited_power_vs_noise_by_condition": {c: float(np.mean(v)) for c, v in by_cond.items()},
+        "excited_power_vs_noise_by_frequency": {k: float(np.mean(v)) for k, v in by_freq.items()},
+        "repeatable_unexcited_vs_noise": rep_ratio,
+        "repeatable_unexcited_z": rep_z,
+        "within_noise": not flags,
+        # What the residual would still gain if explained: the excess −2 log L over noise at
+        # the excited bins of the flagged channels, and of the repeatable unexcited power.
+        "excess_minus2loglik": float(
+            2.0 * sum(exc[ch] - n_exc for ch in range(2) if ratio[ch] > UNEXPLAINED_EXCITED_RATIO)
+            + (2.0 * rep_x if rep_ratio > UNEXPLAINED_REPEAT_RATIO else 0.0)
+        ),
+    }
+    if not flags:
+        return {"description": None, **stats}
+    return {"description": "; ".join(flags), **stats}
+
+
+def _sim_spectra(trials, arms, mech) -> dict[str, np.ndarray]:
+    return {t.label: simulated_spectra(t, arms[t.label], mech) for t in trials}
+
+
+def _candidate_table(sel: Selection, drift: DriftResult | None) -> dict[str, dict]:
+    """Per candidate: its evaluation at the first step (against the baseline), and where it
+    was retained, the step that retained it."""
+    out: dict[str, dict] = {}
+    for step in sel.steps:
+        for r in step:
+            d = r.to_dict()
+            if r.name not in out:
+                out[r.name] = {**d, "later_steps": []}
+            else:
+                out[r.name]["later_steps"].append(d)
+    for r in sel.retained:
+        out[r.name]["retained"] = True
+        out[r.name]["retained_at_step"] = r.step
+        # The retained model's parameters (all its data; nonlinear ones refined at the end).
+        out[r.name]["parameters"] = [p for p in sel.final.parameters() if p["mechanism"] == r.name]
+    for d in out.values():
+        d.setdefault("retained", False)
+    if drift is not None:
+        out["drift"] = {**drift.to_dict(), "retained": drift.passed}
+    return out
+
+
+def _assemble(
+    prep: PreparedStudy,
+    setup: Setup,
+    sel: Selection,
+    drift: DriftResult | None,
+    fam_arms: dict[str, ArmParams],
+    base_mech: Mechanisms,
+    model: str | Path | None,
+) -> DiagnosisResult:
+    trials = setup.trials
+    base, final = sel.base, sel.final
+    as_sel = sel.final_as_selected or final
+    final_mech = sel.final_spec.mechanisms(final.x)
+    # Strongest first, by how much −2 log L each explains (a mechanism: its drop when it was
+    # retained; "unexplained": the excess it leaves). A residual far larger than what the
+    # retained mechanisms explain makes them partial explanations and the cause unexplained.
+    strength = {r.name: r.delta_m2ll for r in sel.retained}
+    if drift is not None and drift.passed:
+        strength["drift"] = drift.delta_m2ll
+    unexplained = _unexplained(setup, final)
+    if unexplained and unexplained["description"]:
+        strength["unexplained"] = unexplained["excess_minus2loglik"]
+    causes = sorted(strength, key=lambda n: -strength[n])
+    cause = causes[0] if causes else "none"
+
+    sims = {
+        "paper": C.compare_trials(trials, setup.paper_arms, base_mech),
+        "baseline": C.compare_trials(trials, base.arms, base_mech),
+        "extended": C.compare_trials(trials, final.arms, final_mech),
+    }
+    spectra = {
+        "paper": _sim_spectra(trials, setup.paper_arms, base_mech),
+        "baseline": base.simulated,
+        "extended": final.simulated,
+    }
+    frfs = C.condition_frfs(trials, setup.noise, spectra)
+    resid = {
+        m: {t.label: residual_vectors(t, spectra[m][t.label]) for t in trials}
+        for m in ("baseline", "extended")
+    }
+    all_arms = {**final.arms, **fam_arms}
+    fam_sims = C.compare_trials(setup.fam, fam_arms, final_mech) if fam_arms else {}
+    comparison = {
+        "vaf": {m: C.vaf_table(trials, s) for m, s in sims.items()},
+        "vaf_per_trial": {
+            t.label: {
+                m: {"theta": s[t.label].vaf_theta(t), "td": s[t.label].vaf_td(t)}
+                for m, s in sims.items()
+            }  # fmt: skip
+            for t in trials
+        },
+        "fit_percent_per_trial": {
+            t.label: {m: C.trial_fit_percent(t, spectra[m][t.label]) for m in spectra}
+            for t in trials
+        },
+        "frf_outside_ci95": {m: C.frf_mismatch(frfs, m) for m in spectra},
+        "frf": [f.to_dict() for f in frfs],
+        "unexcited": {m: C.distortion_table(trials, resid[m], setup.noise) for m in resid},
+        "residual_vs_grip": {
+            m: C.residual_vs_grip(trials, sims[m]) for m in ("baseline", "extended")
+        },
+        "residual_vs_amplitude": {
+            m: C.residual_vs_amplitude(trials, sims[m]) for m in ("baseline", "extended")
+        },
+        "residual_vs_order": C.residual_vs_order(
+            trials + setup.fam, all_arms, {**sims["extended"], **fam_sims}
+        ),
+        "fit_quality": {
+            "baseline": {
+                "lack_of_fit": base.lack_of_fit,
+                "minus2loglik": base.m2ll,
+                "bic": base.bic,
+                "n_params": base.n_params,
+                "n_obs": base.n_obs,
+            },
+            "extended": {
+                "lack_of_fit": as_sel.lack_of_fit,
+                "minus2loglik": as_sel.m2ll,
+                "bic": as_sel.bic,
+                "n_params": as_sel.n_params,
+                "n_obs": as_sel.n_obs,
+            },
+        },  # fmt: skip
+    }
+    gain = _gain(setup, sel, drift, frfs)
+    cand = _candidate_table(sel, drift)
+    data = {
+        "subjects": prep.subjects,
+        "conditions": prep.conditions,
+        "n_trials": len(trials),
+        "n_familiarization_trials": len(setup.fam),
+        "sample_rates_Hz": sorted({t.fs_hz for t in trials}),
+        "skipped": [{"trial": a, "reason": b} for a, b in prep.skipped],
+        "held_out_folds": [
+            {"train": sorted({t.repetition for t in a}), "test": sorted({t.repetition for t in b})}
+            for a, b in setup.folds
+        ],
+        "arms": {lab: a.__dict__ for lab, a in final.arms.items()},
+        "remnant": _remnant_table(setup, final),
+    }
+    notes = list(prep.notes)
+    if model is not None:
+        notes.append(
+            f"baseline: the model file {Path(model).name} (its mechanisms, with their "
+            "parameters as given, are part of the baseline; a candidate of the same name "
+            "re-fits them)"
+        )
+    return DiagnosisResult(
+        cause=cause,
+        causes=causes,
+        candidates=cand,
+        gain=gain,
+        comparison=comparison,
+        unexplained=unexplained,
+        data=data,
+        notes=notes,
+        limits=list(prep.limits),
+        baseline_model=str(model) if model is not None else None,
+    )
+
+
+def _gain(setup: Setup, sel: Selection, drift: DriftResult | None, frfs: list) -> dict:
+    """Held-out VAF and FIT% before (baseline) and after (retained model), per condition."""
+    base, final = sel.base, sel.final
+    spec = sel.final_spec
+    as_sel = sel.final_as_selected or final
+    d_bic = as_sel.bic - base.bic
+    out: dict[str, Any] = {
+        "method": (
+            "each repetition predicted by the model fitted on the other: the retained "
+            "mechanisms' parameters come from the other repetition; every trial's own arm "
+            "parameters (which every model has, the baseline included) are fitted on it"
+        ),
+        "delta_bic": d_bic,
+        "delta_minus2loglik": base.m2ll - as_sel.m2ll,
+    }
+    per_cond: dict[str, dict[str, Any]] = {}
+    if not setup.folds:
+        out["held_out"] = False
+        out["overall"] = {}
+        out["per_condition"] = {}
+        return out
+    before: dict[str, C.TrialComparison] = {}
+    after: dict[str, C.TrialComparison] = {}
+    fit_b: dict[str, float] = {}
+    fit_a: dict[str, float] = {}
+    base_mech = setup.base_mech
+    for (_train, test), x in zip(setup.folds, sel.final_fold_x, strict=True):
+        if spec.n_free:
+            with C.few_remnants(test):
+                te = fit_model(test, spec, setup.noise, final.arms, x0=x, fix_mechanisms=True)
+            arms_after, mech_after = te.arms, spec.mechanisms(x)
+            Y_after = te.simulated
+        else:
+            arms_after, mech_after = base.arms, base_mech
+            Y_after = {t.label: base.simulated[t.label] for t in test}
+        before.update(C.compare_trials(test, base.arms, base_mech))
+        after.update(C.compare_trials(test, arms_after, mech_after))
+        for t in test:
+            fit_b[t.label] = C.trial_fit_percent(t, base.simulated[t.label])
+            fit_a[t.label] = C.trial_fit_percent(t, Y_after[t.label])
+    tested = [t for t in setup.trials if t.label in before]
+    vb, va = C.vaf_table(tested, before), C.vaf_table(tested, after)
+    for c in vb:
+        ts = tested if c == "all" else [t for t in tested if t.condition == c]
+        fb = float(np.nanmean([fit_b[t.label] for t in ts]))
+        fa = float(np.nanmean([fit_a[t.label] for t in ts]))
+        m2_b = 2.0 * sum(base.cost_trial[t.label] for t in ts)
+        m2_a = 2.0 * sum(as_sel.cost_trial[t.label] for t in ts)
+        n_obs = 2 * sum(len(t.bins) for t in ts)
+        per_cond[c] = {
+            "vaf_theta_before": vb[c]["vaf_theta_percent"],
+            "vaf_theta_after": va[c]["vaf_theta_percent"],
+            "vaf_theta_pp": va[c]["vaf_theta_percent"] - vb[c]["vaf_theta_percent"],
+            "vaf_td_before": vb[c]["vaf_td_percent"],
+            "vaf_td_after": va[c]["vaf_td_percent"],
+            "vaf_td_pp": va[c]["vaf_td_percent"] - vb[c]["vaf_td_percent"],
+            "fit_before": fb,
+            "fit_after": fa,
+            "fit_pp": fa - fb,
+            # In-sample, on all trials of the condition; shared mechanism parameters are
+            # counted in full for each condition, as if fitted to it alone.
+            "delta_minus2loglik": m2_b - m2_a,
+            "delta_bic": -(m2_b - m2_a) + spec.n_free * math.log(max(n_obs, 2)),
+            "n_trials": vb[c]["n_trials"],
+        }
+    out["held_out"] = True
+    out["overall"] = per_cond.pop("all")
+    out["per_condition"] = per_cond
+    if drift is not None and drift.passed:
+        out["drift"] = _drift_gain(setup, sel, drift)
+    return out
+
+
+def _drift_gain(setup: Setup, sel: Selection, drift: DriftResult) -> dict:
+    """Held-out gain of the drift term: each repetition's arm predicted from the other
+    repetition's, scaled by the drift between their trial indices, against unscaled."""
+    final = sel.final
+    mech = sel.final_spec.mechanisms(final.x)
+    cells: dict[tuple[str, str], list[TrialData]] = {}
+    for t in setup.trials:
+        cells.setdefault(t.cell, []).append(t)
+    pairs_b, pairs_a = [], []
+    for items in cells.values():
+        for t in items:
+            other = [o for o in items if o is not t and o.trial_index is not None]
+            if not other or t.trial_index is None:
+                continue
+            o = other[0]
+            arm = final.arms[o.label]
+            f = (1 + drift.rate * (t.trial_index - 1)) / (1 + drift.rate * (o.trial_index - 1))
+            with C.few_remnants([t]):
+                th_b, td_b = C.simulated_segment(t, arm, mech)
+                th_a, td_a = C.simulated_segment(
+                    t, replace(arm, k_i=arm.k_i * f, k_c=arm.k_c * f), mech
+                )
+            pairs_b.append((t, th_b, td_b))
+            pairs_a.append((t, th_a, td_a))
+    if not pairs_b:
+        return {}
+    vb_th = C.pooled_vaf([(t.theta, th) for t, th, _ in pairs_b])
+    va_th = C.pooled_vaf([(t.theta, th) for t, th, _ in pairs_a])
+    vb_td = C.pooled_vaf([(t.td, td) for t, _, td in pairs_b])
+    va_td = C.pooled_vaf([(t.td, td) for t, _, td in pairs_a])
+    return {
+        "method": "each trial simulated with the arm fitted on the other repetition of its "
+        "condition, with and without the drift between their positions",
+        "vaf_theta_before": vb_th,
+        "vaf_theta_after": va_th,
+        "vaf_theta_pp": va_th - vb_th,
+        "vaf_td_before": vb_td,
+        "vaf_td_after": va_td,
+        "vaf_td_pp": va_td - vb_td,
+        "delta_bic": drift.delta_bic,
+    }
+
+
+def _remnant_table(setup: Setup, fit: FitResult) -> dict[str, dict]:
+    out = {}
+    for t in setup.trials:
+        sd, fc = remnant_spectrum_fit(t, fit.arms[t.label])
+        out[t.label] = {"remnant_sd_Nm": sd, "remnant_corner_Hz": fc}
+    return out
+
+
+def _gmean(x: list[float]) -> float:
+    x = [v for v in x if v is not None and np.isfinite(v) and v > 0]
+    return float(np.exp(np.mean(np.log(x)))) if x else float("nan")
+
+
+def _model_text(
+    prep: PreparedStudy,
+    setup: Setup,
+    sel: Selection,
+    drift: DriftResult | None,
+    result: DiagnosisResult,
+) -> str:
+    final = sel.final
+    mech = sel.final_spec.mechanisms(final.x)
+    fitted: dict[str, list[dict]] = {}
+    for p in final.parameters():
+        fitted.setdefault(p["mechanism"], []).append(p)
+    if drift is not None and drift.passed:
+        mech = replace(mech, drift=Drift(rate_per_trial=drift.rate))
+        fitted["drift"] = drift.to_dict()["parameters"]
+    baseline: dict[str, dict[str, Any]] = {}
+    rem = result.data["remnant"]
+    for cond in prep.conditions:
+        ts = [t for t in setup.trials if t.condition == cond]
+        subjects = sorted({t.subject for t in ts})
+        vals: dict[str, Any] = {}
+        per_subj: dict[str, dict[str, list[float]]] = {s: {} for s in subjects}
+        for t in ts:
+            arm = final.arms[t.label]
+            d = per_subj[t.subject]
+            for a in ARM_KEYS:
+                d.setdefault(a, []).append(getattr(arm, a))
+            g = t.grip[t.start : t.stop]
+            d.setdefault("grip_mean", []).append(float(np.mean(g)))
+            d.setdefault("grip_sd", []).append(float(np.std(g)))
+            d.setdefault("rem_sd", []).append(rem[t.label]["remnant_sd_Nm"])
+            d.setdefault("rem_fc", []).append(rem[t.label]["remnant_corner_Hz"])
+        subj_means = {s: {k: _gmean(v) for k, v in d.items()} for s, d in per_subj.items()}
+        for a, key in ARM_KEYS.items():
+            vals[key] = _gmean([m[a] for m in subj_means.values()])
+        vals["grip_mean_N"] = _gmean([m["grip_mean"] for m in subj_means.values()])
+        vals["grip_sd_N"] = _gmean([m["grip_sd"] for m in subj_means.values()])
+        vals["remnant_sd_Nm"] = _gmean([m["rem_sd"] for m in subj_means.values()])
+        vals["remnant_corner_Hz"] = _gmean([m["rem_fc"] for m in subj_means.values()])
+        vals["n_subjects"] = len(subjects)
+        if len(subjects) > 1:
+            for a in ("k_i", "k_c", "b_i", "b_c"):
+                lv = np.log([m[a] for m in subj_means.values()])
+                vals[f"{a}_between_subject_cv"] = float(np.std(lv, ddof=1))
+        baseline[cond] = vals
+    header = {
+        "fs_hz": float(np.median([t.fs_hz for t in setup.trials])),
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "cause": result.cause,
+        "causes": result.causes,
+    }
+    comments = [
+        "Steerlab world model, written by `steerlab diagnose` (docs/diagnosis.md).",
+        "Simulate with it: steerlab simulate --model model.toml --subjects N --out DIR",
+        "[baseline.*]: the typical subject per condition (geometric mean over subjects); "
+        "[mechanisms.*]: the retained mechanisms, fitted parameters with se and ci95.",
+    ]
+    return world_model_text(baseline, mech, fitted, header, comments)

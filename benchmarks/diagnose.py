@@ -1,0 +1,250 @@
+"""Hide a mechanism in simulated data, diagnose, and count what the diagnosis names.
+
+For every mechanism and magnitude of a grid (from barely there to strong) and for null data
+(no mechanism), studies are simulated with ``steerlab simulate``'s engine, passed through
+export → import (which keeps only the interchange columns and trial metadata: the truth stored
+in the session files' root attributes does not survive), written under neutral names, and
+diagnosed. Reported:
+
+- detection rate: the hidden mechanism is the diagnosis' ``cause``;
+- wrong-name rate: another mechanism (or ``unexplained``) is the cause;
+- false-alarm rate: on null data, anything but ``none``;
+- the smallest magnitude named ≥ 90 % of the time, per mechanism;
+- whether the true parameter lies in the reported 95 % interval (when named);
+- run time per subject session.
+
+Goals (issue "Diagnose"): ≥ 90 % correct names at moderate magnitude, ≤ 5 % false alarms, one
+subject session < 60 s. ``--quick`` runs a reduced grid (fewer magnitudes and seeds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from benchmarks.machine import machine
+
+MODERATE = {
+    "reflex_delay": 6.0,
+    "coulomb_friction": 0.15,
+    "stiffness_nonlinearity": 200.0,
+    "actuator_lag": 0.005,
+    "sensor_delay": 0.005,
+    "grip_scheduled_stiffness": 1.0,
+    "drift": 0.04,
+}
+GRID = {
+    "reflex_delay": (1.0, 2.0, 4.0, 6.0),
+    "coulomb_friction": (0.01, 0.03, 0.07, 0.15),
+    "stiffness_nonlinearity": (25.0, 50.0, 100.0, 200.0),
+    "actuator_lag": (0.0005, 0.001, 0.002, 0.005),
+    "sensor_delay": (0.005, 0.01),  # whole samples at 200 Hz
+    "grip_scheduled_stiffness": (0.1, 0.25, 0.5, 1.0),
+    "drift": (0.01, 0.02, 0.03, 0.04),
+}
+QUICK_GRID = {
+    "reflex_delay": (2.0, 6.0),
+    "coulomb_friction": (0.03, 0.15),
+    "stiffness_nonlinearity": (50.0, 200.0),
+    "actuator_lag": (0.001, 0.005),
+    "sensor_delay": (0.005,),
+    "grip_scheduled_stiffness": (0.25, 1.0),
+    "drift": (0.02, 0.04),
+}
+TRUE_PARAMETER = {
+    "reflex_delay": "k_p",
+    "coulomb_friction": "torque_nm",
+    "stiffness_nonlinearity": "k3_nm_per_rad3",
+    "actuator_lag": "tau_s",
+    "sensor_delay": "delay_s",
+    "grip_scheduled_stiffness": "gain",
+    "drift": "rate_per_trial",
+}
+CONDITIONS = ("RT", "BT12", "PT")
+
+
+def mechanisms_for(name: str | None, magnitude: float):
+    """The world's mechanisms with one of them at ``magnitude`` (its main parameter)."""
+    from hardware.sim import mechanisms as m
+
+    if name is None:
+        return m.Mechanisms()
+    one = {
+        "reflex_delay": lambda v: m.ReflexDelay(k_p=v, k_v=v / 10.0),
+        "coulomb_friction": lambda v: m.CoulombFriction(torque_nm=v),
+        "stiffness_nonlinearity": lambda v: m.StiffnessNonlinearity(k3_nm_per_rad3=v),
+        "actuator_lag": lambda v: m.ActuatorLag(tau_s=v),
+        "sensor_delay": lambda v: m.SensorDelay(delay_s=v),
+        "grip_scheduled_stiffness": lambda v: m.GripScheduledStiffness(gain=v),
+        "drift": lambda v: m.Drift(rate_per_trial=v),
+    }[name](magnitude)
+    return m.Mechanisms(**{name: one})
+
+
+def protocol_text(conditions: tuple[str, ...] = CONDITIONS, fs_hz: float = 200.0) -> str:
+    """The paper's protocol at ``fs_hz`` with a 2 s run-in, keeping only ``conditions``."""
+    text = (Path(__file__).resolve().parents[1] / "protocols" / "pronker2017.toml").read_text()
+    text = text.replace("loop_rate_hz = 1000.0", f"loop_rate_hz = {fs_hz}")
+    text = text.replace("run_in_s = 5.0 ", "run_in_s = 2.0 ")
+    head, _, rest = text.partition("[[conditions]]")
+    blocks = ["[[conditions]]" + b for b in rest.split("[[conditions]]")]
+    keep = [b for b in blocks if any(f'name = "{c}"' in b for c in conditions)]
+    return head + "".join(keep)
+
+
+def make_study(
+    root: Path,
+    mechanism: str | None,
+    magnitude: float,
+    *,
+    seed: int,
+    n_subjects: int = 1,
+    conditions: tuple[str, ...] = CONDITIONS,
+    fs_hz: float = 200.0,
+) -> Path:
+    """Simulate, export, import; return the directory of imported session files."""
+    from app.simulate import simulate_study
+    from hardware.sim.world import WorldConfig
+    from protocols.interchange import export_study, import_study
+
+    root.mkdir(parents=True, exist_ok=True)
+    proto = root / "p.toml"
+    proto.write_text(protocol_text(conditions, fs_hz))
+    world = WorldConfig(fs_hz=fs_hz, mechanisms=mechanisms_for(mechanism, magnitude))
+    simulate_study(n_subjects, root / "a", seed=seed, protocol_path=str(proto), jobs=1, world=world)
+    export_study(root / "a", root / "b")
+    import_study(root / "b", root / "c")
+    shutil.rmtree(root / "a")  # the only place the truth was written
+    shutil.rmtree(root / "b")
+    return root / "c"
+
+
+def run_case(args: tuple) -> dict:
+    mechanism, magnitude, seed, n_subjects = args
+    from analysis.diagnosis import run_diagnosis
+
+    with tempfile.TemporaryDirectory() as tmp:
+        data = make_study(Path(tmp) / "s", mechanism, magnitude, seed=seed, n_subjects=n_subjects)
+        t0 = time.perf_counter()
+        try:
+            r = run_diagnosis(data, None, jobs=1)
+        except Exception as e:  # a crash is a result too: counted, not fatal to the run
+            return {
+                "mechanism": mechanism or "none", "magnitude": magnitude, "seed": seed,
+                "n_subjects": n_subjects, "cause": "error", "causes": [],
+                "error": f"{type(e).__name__}: {e}", "truth_in_ci95": None,
+                "seconds": time.perf_counter() - t0,
+                "seconds_per_subject": (time.perf_counter() - t0) / n_subjects,
+            }  # fmt: skip
+        wall = time.perf_counter() - t0
+    within = None
+    if mechanism is not None and mechanism in r.causes:
+        key = TRUE_PARAMETER[mechanism]
+        for p in r.candidates[mechanism].get("parameters", []):
+            if p["parameter"] == key:
+                lo, hi = p["ci95"]
+                within = bool(lo <= magnitude <= hi)
+    return {
+        "mechanism": mechanism or "none",
+        "magnitude": magnitude,
+        "seed": seed,
+        "n_subjects": n_subjects,
+        "cause": r.cause,
+        "causes": r.causes,
+        "truth_in_ci95": within,
+        "seconds": wall,
+        "seconds_per_subject": wall / n_subjects,
+    }
+
+
+def main(argv: list[str]) -> dict:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks diagnose")
+    ap.add_argument("--quick", action="store_true", help="reduced grid")
+    ap.add_argument("--seeds", type=int, default=None, help="studies per grid point")
+    ap.add_argument("--nulls", type=int, default=None, help="null studies")
+    ap.add_argument("--jobs", type=int, default=1, help="studies diagnosed in parallel")
+    ap.add_argument("--only", nargs="*", help="mechanisms to run (default: all)")
+    ap.add_argument("--out", help="also write every case's result to this JSON file")
+    a = ap.parse_args(argv)
+    grid = QUICK_GRID if a.quick else GRID
+    seeds = a.seeds or (3 if a.quick else 5)
+    nulls = a.nulls if a.nulls is not None else (8 if a.quick else 20)
+    names = a.only or list(grid)
+    cases = []
+    for name in names:
+        # Drift shows between trials only: two subjects give it twice the trials to show in.
+        n_sub = 2 if name == "drift" else 1
+        for mag in grid[name]:
+            cases += [(name, mag, 1000 + 17 * s, n_sub) for s in range(seeds)]
+    cases += [(None, 0.0, 5000 + s, 1) for s in range(nulls)]
+    t0 = time.perf_counter()
+    results: list[dict] = []
+    with ProcessPoolExecutor(max_workers=max(1, a.jobs)) as ex:
+        for r in ex.map(run_case, cases):
+            results.append(r)
+            if a.out:  # as it goes: a long run that is stopped keeps what it did
+                Path(a.out).write_text(json.dumps(results, indent=1))
+    wall = time.perf_counter() - t0
+    return {**summarise(results, grid), "wall_s": round(wall, 1), "machine": machine()}
+
+
+def summarise(results: list[dict], grid: dict) -> dict:
+    per: dict[str, dict] = {}
+    for name in grid:
+        rows = [r for r in results if r["mechanism"] == name]
+        if not rows:
+            continue
+        by_mag = {}
+        for mag in sorted({r["magnitude"] for r in rows}):
+            rs = [r for r in rows if r["magnitude"] == mag]
+            named = sum(r["cause"] == name for r in rs)
+            wrong = sum(r["cause"] not in (name, "none") for r in rs)
+            cis = [r["truth_in_ci95"] for r in rs if r["truth_in_ci95"] is not None]
+            by_mag[f"{mag:g}"] = {
+                "n": len(rs),
+                "detection_rate": named / len(rs),
+                "wrong_name_rate": wrong / len(rs),
+                "missed_rate": sum(r["cause"] == "none" for r in rs) / len(rs),
+                "truth_in_ci95_rate": (sum(cis) / len(cis)) if cis else None,
+            }
+        ok = [float(m) for m, d in by_mag.items() if d["detection_rate"] >= 0.9]
+        mod = by_mag.get(f"{MODERATE[name]:g}")
+        per[name] = {
+            "by_magnitude": by_mag,
+            "smallest_detected_90pct": min(ok) if ok else None,
+            "moderate": MODERATE[name],
+            "detection_rate_at_moderate": mod["detection_rate"] if mod else None,
+        }
+    nulls = [r for r in results if r["mechanism"] == "none"]
+    named = [r for r in results if r["mechanism"] != "none" and r["magnitude"] == MODERATE.get(
+        r["mechanism"])]  # fmt: skip
+    correct_mod = sum(r["cause"] == r["mechanism"] for r in named) / len(named) if named else None
+    false_alarm = sum(r["cause"] != "none" for r in nulls) / len(nulls) if nulls else None
+    secs = [r["seconds_per_subject"] for r in results]
+    return {
+        "per_mechanism": per,
+        "correct_name_rate_at_moderate": correct_mod,
+        "false_alarm_rate": false_alarm,
+        "false_alarm_causes": sorted({r["cause"] for r in nulls if r["cause"] != "none"}),
+        "errors": sum(r["cause"] == "error" for r in results),
+        "n_null": len(nulls),
+        "seconds_per_subject_session": {
+            "median": sorted(secs)[len(secs) // 2] if secs else None,
+            "max": max(secs) if secs else None,
+            "note": "3-condition sessions at 200 Hz (9 trials incl. familiarization)",
+        },
+        "goals": {
+            "correct_name_at_moderate_min": 0.9,
+            "false_alarm_max": 0.05,
+            "seconds_per_subject_max": 60.0,
+        },
+        "goals_met": {
+            "correct_names": correct_mod is not None and correct_mod >= 0.9,
+            "false_alarms": false_alarm is not None and false_alarm <= 0.05,
+        },
+    }
