@@ -108,7 +108,7 @@ def _cmd_stop(a: argparse.Namespace) -> int:
 def _cmd_diagnose(a: argparse.Namespace) -> int:
     from analysis.diagnosis import run_diagnosis
 
-    result = run_diagnosis(a.dir, a.out, jobs=a.jobs, progress=Progress("diagnose"))
+    result = run_diagnosis(a.dir, a.out, jobs=a.jobs, progress=Progress("diagnose"), model=a.model)
     print(result.summary())
     return 0
 
@@ -181,6 +181,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("dir")
     d.add_argument("--out", required=True)
     d.add_argument("--jobs", type=int, default=1)
+    d.add_argument("--model", help="model.toml of an earlier diagnosis: its mechanisms become "
+                   "the baseline")  # fmt: skip
     d.set_defaults(func=_cmd_diagnose)
 
     u = sub.add_parser("gui", help="experimenter GUI and subject dashboard")

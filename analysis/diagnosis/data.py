@@ -98,6 +98,8 @@ class TrialData:
     notes: list[str] = field(default_factory=list)
     # Remnant realisations (N·m, n_sim samples each) for nonlinear models; set by the fit.
     remnant: list[np.ndarray] = field(default_factory=list)
+    # Undo the model's torque-reading delay in the wheel-equation channel (final fit only).
+    undo_reading_delay: bool = False
     _projector: Callable[[np.ndarray], np.ndarray] | None = field(default=None, repr=False)
 
     def __getstate__(self) -> dict:

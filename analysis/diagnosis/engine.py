@@ -117,6 +117,29 @@ def plausible_arm(t: TrialData, model_baseline: dict | None = None) -> ArmParams
     return FALLBACK_ARM
 
 
+def start_arms(
+    setup: Setup,
+    trials: Sequence[TrialData],
+    spec: ModelSpec,
+    noise: NoiseModel,
+    x: np.ndarray,
+    current: dict[str, ArmParams],
+) -> dict[str, ArmParams]:
+    """Per trial, the best start among the current model's arms and the plausible ones.
+
+    A misspecified model can drive a trial's arm to its bounds (the baseline on data with a
+    10 ms torque-reading delay: k_i = 10⁵ N·m/rad, the contact spring taking the arm's
+    compliance); a candidate started there stays stuck in that corner, so such arms are
+    replaced by plausible ones outright.
+    """
+    plausible = {t.label: plausible_arm(t) for t in trials}
+    fixed = {
+        t.label: plausible[t.label] if _degenerate(current[t.label]) else current[t.label]
+        for t in trials
+    }
+    return best_start_arms(trials, spec, noise, [fixed, plausible], x=x)
+
+
 def set_remnants(trials: Sequence[TrialData], arms: dict[str, ArmParams], k: int) -> None:
     for t in trials:
         t.remnant = [reconstruct_remnant(t, arms[t.label], seed=i) for i in range(k)]
@@ -229,10 +252,13 @@ def _fold_eval(
     for i, (train, test) in enumerate(setup.folds):
         if spec.n_free:
             x0 = None if x_starts is None else x_starts[i]
-            x = fit_model(train, spec, setup.noise, arms, x0=x0).x
+            x0 = spec.start() if x0 is None else x0
+            a0 = start_arms(setup, train, spec, setup.noise, x0, arms)
+            x = fit_model(train, spec, setup.noise, a0, x0=x0).x
         else:
             x = spec.off()
-        te = fit_model(test, spec, setup.noise, arms, x0=x, fix_mechanisms=True)
+        a0 = start_arms(setup, test, spec, setup.noise, x, arms)
+        te = fit_model(test, spec, setup.noise, a0, x0=x, fix_mechanisms=True)
         xs.append(x)
         costs.append(te.m2ll)
     return xs, costs
@@ -249,7 +275,8 @@ def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> 
     cand = candidate(name)
     spec = ModelSpec(current.spec.base, current.spec.free + (cand,), current.spec.fs_ref)
     x0 = np.concatenate([current.fit.x, spec.start()[current.spec.n_free :]])
-    fit = fit_model(setup.trials, spec, setup.noise, current.fit.arms, x0=x0)
+    a0 = start_arms(setup, setup.trials, spec, setup.noise, x0, current.fit.arms)
+    fit = fit_model(setup.trials, spec, setup.noise, a0, x0=x0)
     d_m2ll = current.fit.m2ll - fit.m2ll
     d_bic = fit.bic - current.fit.bic
     gain = None
@@ -416,8 +443,12 @@ def select(
         if needs_remnant(final_spec.mechanisms(final.x)) and K_REMNANT_FINAL > setup.n_remnant:
             set_remnants(setup.trials, final.arms, K_REMNANT_FINAL)
             setup.n_remnant = K_REMNANT_FINAL
+        if final_spec.mechanisms(final.x).sensor_delay.active:
+            for t in setup.trials + setup.fam:
+                t.undo_reading_delay = True
         setup.final_noise = noise_model(setup.trials, final.simulated)
-        final = fit_model(setup.trials, final_spec, setup.final_noise, final.arms, x0=final.x)
+        a0 = start_arms(setup, setup.trials, final_spec, setup.final_noise, final.x, final.arms)
+        final = fit_model(setup.trials, final_spec, setup.final_noise, a0, x0=final.x)
     return Selection(steps, retained, final, final_spec, setup.base, current.fold_x, current.fit)
 
 

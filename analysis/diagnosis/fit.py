@@ -207,8 +207,16 @@ def raw_vectors(trial: TrialData, Ysim: np.ndarray) -> np.ndarray:
     frequency that the transient projection removes; subtracting the two channels' ramps
     separately would instead leave a 1/k term that does not cancel.
     """
-    e = trial.Y - Ysim
-    return np.array([e[0], e[3] + trial.Zw * e[2]])
+    e = trial.Y - Ysim[:4]
+    # With a torque-reading delay τ in the model, the remnant's torque is read late and its
+    # angle is not: they no longer cancel in this channel, and what is left varies too fast
+    # with frequency for the band-wise noise model. For the retained model's final fit and
+    # checks (``trial.undo_reading_delay``) the delay is undone (factor e^{jωτ}, |·| = 1, so
+    # the likelihood's normalisation is unchanged) with the noise re-estimated likewise.
+    # During selection the channel stays the same for every model, so that all are judged
+    # with one noise model.
+    undo = Ysim[4] if trial.undo_reading_delay else 1.0
+    return np.array([e[0], undo * e[3] + trial.Zw * e[2]])
 
 
 def residual_vectors(trial: TrialData, Ysim: np.ndarray) -> np.ndarray:
@@ -357,7 +365,8 @@ def arm_jacobian(
             [Ysim[0] * rel_theta, Ysim[1] * rel_td, Ysim[2] * rel_theta, Ysim[3] * rel_td]
         )
         # r = W(P(v(Y − Ysim))) is linear in Ysim.
-        out[:, j] = W(transient_projector(trial)(np.array([e[0], e[3] + Zw * e[2]])))
+        v = np.array([e[0], (Ysim[4] if trial.undo_reading_delay else 1.0) * e[3] + Zw * e[2]])
+        out[:, j] = W(transient_projector(trial)(v))
     return out
 
 

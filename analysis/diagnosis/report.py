@@ -73,18 +73,21 @@ def fig_candidates(result) -> Figure:
     fig = _fig(9.5, 3.2)
     ax1, ax2 = fig.subplots(1, 2)
     y = np.arange(len(names))
-    dbic = [cand[n].get("delta_bic") or 0.0 for n in names]
-    ho = [cand[n].get("held_out_gain_minus2loglik") for n in names]
+    # Clipped for display: a diverged candidate can score −10¹⁶.
+    dbic = np.clip([cand[n].get("delta_bic") or 0.0 for n in names], -1e7, 1e7)
+    ho = np.clip([cand[n].get("held_out_gain_minus2loglik") or 0.0 for n in names], -1e7, 1e7)
     colours = ["#1f77b4" if cand[n].get("retained") else "#bbbbbb" for n in names]
     ax1.barh(y, dbic, color=colours)
     ax1.axvline(-10, color="k", lw=0.8, ls=":")
     ax1.set_xscale("symlog", linthresh=10)
+    ax1.set_xlim(min(dbic.min() * 2, -30), max(dbic.max() * 2, 30))
     ax1.set_yticks(y, names)
     ax1.invert_yaxis()
     ax1.set_xlabel("ΔBIC vs baseline (dotted: −10)")
-    ax2.barh(y, [v if v is not None else 0.0 for v in ho], color=colours)
+    ax2.barh(y, ho, color=colours)
     ax2.axvline(0, color="k", lw=0.8)
     ax2.set_xscale("symlog", linthresh=10)
+    ax2.set_xlim(min(ho.min() * 2, -30), max(ho.max() * 2, 30))
     ax2.set_yticks(y, [""] * len(names))
     ax2.invert_yaxis()
     ax2.set_xlabel("held-out gain, −2 log L (> 0: better)")

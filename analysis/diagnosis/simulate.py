@@ -118,8 +118,9 @@ def _spectra(trial: TrialData, out: dict[str, np.ndarray]) -> np.ndarray:
 
 
 def simulated_spectra(trial: TrialData, arm: ArmParams, mechanisms: Mechanisms) -> np.ndarray:
-    """Complex (4, n_bins): the model's θ and Td on the trial's bins, given the perturbation
-    (ramp removed, then raw, as :func:`analysis.diagnosis.data.measurement_spectra`).
+    """Complex (5, n_bins): the model's θ and Td on the trial's bins, given the perturbation
+    (ramp removed, then raw, as :func:`analysis.diagnosis.data.measurement_spectra`), and
+    the factor e^{jωτ} that undoes the model's torque-reading delay τ.
 
     A linear model's response to the perturbation does not depend on the remnant, and is
     simulated without it. Friction and a cubic stiffness respond to the total motion: the
@@ -139,11 +140,15 @@ def simulated_spectra(trial: TrialData, arm: ArmParams, mechanisms: Mechanisms) 
         ) / (2 * len(rems))
     else:
         Y = _spectra(trial, simulate_trial(trial, arm, mech))
+    # Row 4: the factor that undoes the reading delay in the wheel-equation channel (see
+    # analysis.diagnosis.fit.raw_vectors); 1 without a delay.
+    undo = np.ones(len(trial.bins), dtype=complex)
     if tau:
         shift = np.exp(-2j * np.pi * trial.freqs_hz * tau)
         Y[1] = Y[1] * shift
         Y[3] = Y[3] * shift
-    return Y
+        undo = 1.0 / shift
+    return np.vstack([Y, undo[None, :]])
 
 
 def reconstruct_remnant(
