@@ -151,6 +151,18 @@ def simulated_spectra(trial: TrialData, arm: ArmParams, mechanisms: Mechanisms) 
     return np.vstack([Y, undo[None, :]])
 
 
+def _remnant_spectrum(trial: TrialData, arm: ArmParams) -> tuple[np.ndarray, np.ndarray]:
+    """(frequencies, spectrum of the driver's own torque n) over the analysed segment, with
+    θ_h = θ − Td/(b_c s + k_c) and n = (I_i s² + b_i s + k_i) θ_h − Td."""
+    P = trial.stop - trial.start
+    th = np.fft.rfft(trial.theta)
+    td = np.fft.rfft(trial.td)
+    f = np.fft.rfftfreq(P, 1.0 / trial.fs_hz)
+    s = 2j * np.pi * f
+    n_hat = (arm.I_i * s**2 + arm.b_i * s + arm.k_i) * (th - td / (arm.b_c * s + arm.k_c)) - td
+    return f, n_hat
+
+
 def reconstruct_remnant(
     trial: TrialData, arm: ArmParams, f_max_hz: float = 3.0, seed: int = 0
 ) -> np.ndarray:
@@ -163,12 +175,7 @@ def reconstruct_remnant(
     power). The analysed segment's series is extended periodically over the run-in.
     """
     P = trial.stop - trial.start
-    fs = trial.fs_hz
-    th = np.fft.rfft(trial.theta)
-    td = np.fft.rfft(trial.td)
-    f = np.fft.rfftfreq(P, 1.0 / fs)
-    s = 2j * np.pi * f
-    n_hat = (arm.I_i * s**2 + arm.b_i * s + arm.k_i) * (th - td / (arm.b_c * s + arm.k_c)) - td
+    f, n_hat = _remnant_spectrum(trial, arm)
     band = (f > 0) & (f <= f_max_hz)
     excited = np.zeros(len(f), dtype=bool)
     excited[trial.bins[trial.excited]] = True
@@ -219,11 +226,7 @@ def remnant_spectrum_fit(
     below ``f_max_hz`` (see :func:`reconstruct_remnant`)."""
     P = trial.stop - trial.start
     fs = trial.fs_hz
-    th = np.fft.rfft(trial.theta)
-    td = np.fft.rfft(trial.td)
-    f = np.fft.rfftfreq(P, 1.0 / fs)
-    s = 2j * np.pi * f
-    n_hat = (arm.I_i * s**2 + arm.b_i * s + arm.k_i) * (th - td / (arm.b_c * s + arm.k_c)) - td
+    f, n_hat = _remnant_spectrum(trial, arm)
     use = (f > 0) & (f <= f_max_hz)
     use[trial.bins[trial.excited]] = False
     k = np.flatnonzero(use)
