@@ -207,7 +207,9 @@ class RigDevices:
             "glove_age_s": g.age_s() if g else None,
         }
 
-    def device_loop(self, *, estop=None, realtime: bool = True) -> DeviceLoop:
+    def device_loop(
+        self, *, estop=None, realtime: bool = True, block_s: float = 0.05
+    ) -> DeviceLoop:
         """The control loop over these devices. Its consumer must keep pulling blocks: the
         loop only cycles while it is asked for samples. The engine therefore drives a real-time
         rig through :class:`ProcessLoop`, never this loop directly (an engine pause would
@@ -223,6 +225,7 @@ class RigDevices:
             estop=estop,
             pause_fades_out=True,
             safety=self.rig.safety,
+            block_s=block_s,
         )
 
     def close(self) -> None:
@@ -247,7 +250,11 @@ class RigDevices:
 
 
 # -- the loop's own process ----------------------------------------------------------------------
-def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop) -> None:
+#: How often the loop process reports the devices' status between blocks, s.
+STATUS_PERIOD_S = 1.0
+
+
+def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: float) -> None:
     import gc
 
     from hardware.realtime import tune_process
@@ -261,7 +268,8 @@ def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop) -> None:
         out.put(("error", f"{type(e).__name__}: {e}"))
         return
     try:
-        loop = devices.device_loop(estop=estop)
+        loop = devices.device_loop(estop=estop, block_s=block_s)
+        status_every = max(1, round(STATUS_PERIOD_S / loop.block_s))
         out.put(
             (
                 "ready",
@@ -281,7 +289,7 @@ def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop) -> None:
             try:
                 for i, block in enumerate(loop.run_trial(msg[1], control)):
                     out.put(("block", block))
-                    if i % 20 == 0:
+                    if i % status_every == 0:
                         out.put(("status", devices.status()))
                     while conn.poll():
                         m = conn.recv()
@@ -312,7 +320,14 @@ def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop) -> None:
 class ProcessLoop:
     """A real-time rig's control loop, run in its own process (see the module docstring)."""
 
-    def __init__(self, rig_path: str | None, subject_number: int, *, start_timeout_s: float = 60.0):
+    def __init__(
+        self,
+        rig_path: str | None,
+        subject_number: int,
+        *,
+        start_timeout_s: float = 60.0,
+        block_s: float = 0.05,
+    ):
         ctx = mp.get_context("spawn")
         self._estop = ctx.Event()
         self._conn, child = ctx.Pipe()
@@ -323,7 +338,7 @@ class ProcessLoop:
         self._lock = threading.Lock()
         self._proc = ctx.Process(
             target=_worker,
-            args=(rig_path, subject_number, child, self._q, self._estop),
+            args=(rig_path, subject_number, child, self._q, self._estop, block_s),
             name="steerlab-loop",
             daemon=True,
         )

@@ -149,7 +149,7 @@ def make_rig_loop(
         check_rig_path(rig_path)
         number = subject if isinstance(subject, int) else 1
         try:
-            loop = _rig_loop_class(Path(rig_path))(rig_path, number)
+            loop = _rig_loop_class(Path(rig_path))(rig_path, number, block_s=block_s)
         except Exception as e:  # the rig did not come up: one message for the experimenter
             raise RigError(f"{rig_path}: {e}") from e
         name = Path(rig_path).name

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 
 import h5py
 import numpy as np
@@ -67,6 +68,22 @@ def test_session_in_the_loop_process_is_real_time(process_loop, short_protocol, 
     stats = json.loads(recs[0].attrs["loop_stats"])
     assert stats["cycles"] == 6500
     assert stats["period_error_p50_ms"] < 0.5  # timing quality itself: benchmarks/live_loop.py
+
+
+def test_block_size_reaches_the_loop_process(lenient_rig, short_protocol, tmp_path):
+    # The GUI asks for 20-ms blocks: its plots redraw only on new data, so 50-ms blocks (the
+    # headless default) capped them at 20 frames/s (benchmarks/gui_live.py).
+    loop = ProcessLoop(str(lenient_rig), 2, block_s=0.02)
+    try:
+        plan = build_plan(short_protocol, 2)
+        eng = SessionEngine(replace(plan, trials=plan.trials[:1]), loop)
+        sizes = []
+        eng.subscribe(lambda e: sizes.append(e.n) if isinstance(e, ev.SamplesAcquired) else None)
+        assert eng.run() is State.DONE
+    finally:
+        loop.close()
+    assert sum(sizes) == 6500
+    assert set(sizes[:-1]) == {20}
 
 
 def test_pause_fades_out_and_ends_the_trial_without_losing_samples(
