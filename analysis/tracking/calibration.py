@@ -273,6 +273,22 @@ class Calibration:
         )
 
 
+class CalibratedTracker:
+    """What every tracker shares: it keeps the calibration it is given and will not track
+    without one. What each takes from it is said in its own ``calibrate`` comment, if any."""
+
+    name: str
+    calibration: Calibration | None = None
+
+    def calibrate(self, calibration: Calibration) -> None:
+        self.calibration = calibration
+
+    def calibrated(self) -> Calibration:
+        if self.calibration is None:
+            raise RuntimeError(f"{self.name}: calibrate before tracking")
+        return self.calibration
+
+
 def _number(v: Any) -> float:
     if isinstance(v, Mapping):
         v = v.get("value")

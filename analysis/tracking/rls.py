@@ -46,7 +46,7 @@ from analysis.tracking.base import (
     closed_loop_response,
     finish,
 )
-from analysis.tracking.calibration import Calibration
+from analysis.tracking.calibration import CalibratedTracker
 from analysis.tracking.fitting import TrackFitter
 from protocols.protocol import VirtualWheel
 
@@ -103,8 +103,9 @@ def _rls(Phi, Z, y, lam, p0):
     return out
 
 
-class RecursiveLeastSquares:
-    """RLS with forgetting on the filtered arm equation; see the module docstring."""
+class RecursiveLeastSquares(CalibratedTracker):
+    """RLS with forgetting on the filtered arm equation; see the module docstring. Of the
+    calibration it uses only the fixed inertia I_i: RLS starts from nothing."""
 
     causal = True
 
@@ -127,17 +128,11 @@ class RecursiveLeastSquares:
         self.hop_s = hop_s
         self.freqs = np.geomspace(0.3, 15.0, 14)
         self.name = f"rls_{memory_s:g}s" if instruments else f"rls_plain_{memory_s:g}s"
-        self.calibration: Calibration | None = None
-
-    def calibrate(self, calibration: Calibration) -> None:
-        # Only the fixed inertia I_i comes from here; RLS starts from nothing.
-        self.calibration = calibration
 
     def track(self, trial: TrackingTrial) -> TrackedAdmittance:
-        if self.calibration is None:
-            raise RuntimeError(f"{self.name}: calibrate before tracking")
+        cal = self.calibrated()
         t0 = time.perf_counter()
-        fs, I_i = trial.fs_hz, self.calibration.I_i
+        fs, I_i = trial.fs_hz, cal.I_i
         th, td = trial.angle_rad, trial.driver_torque_Nm
         ff, fh = self.f_filter_hz, self.f_highpass_hz
         th_k = [svf(th, fs, k, ff, fh) for k in range(4)]
@@ -152,9 +147,9 @@ class RecursiveLeastSquares:
             x, v = closed_loop_response(
                 trial.perturbation_Nm,
                 fs,
-                self.calibration.middle_point(),
+                cal.middle_point(),
                 I_i,
-                self.wheel or self.calibration.wheel,
+                self.wheel or cal.wheel,
             )
             x_k = [svf(x, fs, k, ff, fh) for k in range(4)]
             v_k = [svf(v, fs, k, ff, fh) for k in range(2)]
@@ -162,7 +157,6 @@ class RecursiveLeastSquares:
             Z = np.ascontiguousarray(Z / (np.sqrt(np.mean(Z[trial.start :] ** 2, axis=0)) + 1e-300))
         lam = 1.0 - 1.0 / (self.memory_s * fs)
         coef = _rls(Phi, Z, y, lam, 1e4) / scale
-        cal = self.calibration
         fitter = TrackFitter(
             self.freqs, I_i, [{n: p.parameters[n] for n in TRACKED} for p in cal.points],
             cal.middle_point(),

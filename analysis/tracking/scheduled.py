@@ -15,7 +15,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from analysis.tracking.base import TrackedAdmittance, TrackingTrial, finish
-from analysis.tracking.calibration import Calibration
+from analysis.tracking.calibration import CalibratedTracker
 
 DEFAULT_GRIP_TAU_S = 0.1
 
@@ -30,7 +30,7 @@ def smooth_grip(grip: np.ndarray, fs_hz: float, tau_s: float) -> np.ndarray:
     return y
 
 
-class GripScheduledLPV:
+class GripScheduledLPV(CalibratedTracker):
     """LPV model scheduled on the (smoothed) total grip force; calibrate before tracking."""
 
     name = "lpv"
@@ -38,23 +38,18 @@ class GripScheduledLPV:
 
     def __init__(self, grip_tau_s: float = DEFAULT_GRIP_TAU_S) -> None:
         self.grip_tau_s = grip_tau_s
-        self.calibration: Calibration | None = None
-
-    def calibrate(self, calibration: Calibration) -> None:
-        self.calibration = calibration
 
     def track(self, trial: TrackingTrial) -> TrackedAdmittance:
-        if self.calibration is None:
-            raise RuntimeError(f"{self.name}: calibrate before tracking")
+        cal = self.calibrated()
         t0 = time.perf_counter()
         mu = smooth_grip(trial.grip_N, trial.fs_hz, self.grip_tau_s)
-        P = self.calibration.prior(mu)
+        P = cal.prior(mu)
         return finish(
             self.name,
             trial,
             P,
             np.ones(trial.n, dtype=bool),
-            self.calibration.I_i,
+            cal.I_i,
             self.causal,
             t0,
             {"grip_tau_s": self.grip_tau_s},

@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from analysis.tracking.base import TRACKED, TrackedAdmittance, TrackingTrial, finish
-from analysis.tracking.calibration import Calibration
+from analysis.tracking.calibration import CalibratedTracker
 from analysis.tracking.fitting import TrackFitter
 
 
@@ -87,8 +87,9 @@ def ratio_and_weights(spec: dict[str, np.ndarray], counts: np.ndarray):
     return H, np.nan_to_num(w, nan=0.0)
 
 
-class SlidingWindowFRF:
-    """Windowed FRF with the perturbation as instrument, then the arm fit; see module doc."""
+class SlidingWindowFRF(CalibratedTracker):
+    """Windowed FRF with the perturbation as instrument, then the arm fit; see module doc.
+    Of the calibration it uses the fixed inertia, start values and the fit's weak prior."""
 
     causal = True
 
@@ -108,15 +109,9 @@ class SlidingWindowFRF:
             raise ValueError("segment_s must not exceed window_s")
         self.f_max_hz, self.n_bands = f_max_hz, n_bands
         self.name = f"sliding_window_{window_s:g}s"
-        self.calibration: Calibration | None = None
-
-    def calibrate(self, calibration: Calibration) -> None:
-        # Only the fixed inertia, start values and the weak prior of the fit come from here.
-        self.calibration = calibration
 
     def track(self, trial: TrackingTrial) -> TrackedAdmittance:
-        if self.calibration is None:
-            raise RuntimeError(f"{self.name}: calibrate before tracking")
+        cal = self.calibrated()
         t0 = time.perf_counter()
         fs = trial.fs_hz
         seg_n = int(round(self.segment_s * fs))
@@ -129,7 +124,6 @@ class SlidingWindowFRF:
             k: np.vstack([np.zeros((1, v.shape[1]), v.dtype), np.cumsum(v, 0)])
             for k, v in spec.items()
         }
-        cal = self.calibration
         fitter = TrackFitter(
             centres, cal.I_i, [{n: p.parameters[n] for n in TRACKED} for p in cal.points],
             cal.middle_point(),

@@ -19,7 +19,7 @@ import numpy as np
 from scipy import signal
 
 from analysis.tracking.base import TRACKED, TrackedAdmittance, TrackingTrial, finish
-from analysis.tracking.calibration import Calibration
+from analysis.tracking.calibration import CalibratedTracker
 from analysis.tracking.fitting import TrackFitter
 
 
@@ -44,8 +44,9 @@ def _gauss_smooth(X: np.ndarray, fs: float, sds: np.ndarray) -> np.ndarray:
     return out
 
 
-class WaveletTracker:
-    """Morlet-wavelet Ĥ(t, f) with the perturbation as instrument, then the arm fit."""
+class WaveletTracker(CalibratedTracker):
+    """Morlet-wavelet Ĥ(t, f) with the perturbation as instrument, then the arm fit. Of the
+    calibration it uses the fixed inertia, start values and the fit's weak prior."""
 
     causal = False
 
@@ -62,15 +63,9 @@ class WaveletTracker:
         self.freqs = np.geomspace(f_lo_hz, f_hi_hz, n_freqs)
         self.name = f"wavelet_{n_cycles:g}cyc"
         self.n_cycles, self.smooth, self.hop_s, self.rate_hz = n_cycles, smooth, hop_s, rate_hz
-        self.calibration: Calibration | None = None
-
-    def calibrate(self, calibration: Calibration) -> None:
-        # Only the fixed inertia, start values and the weak prior of the fit come from here.
-        self.calibration = calibration
 
     def track(self, trial: TrackingTrial) -> TrackedAdmittance:
-        if self.calibration is None:
-            raise RuntimeError(f"{self.name}: calibrate before tracking")
+        cal = self.calibrated()
         t0 = time.perf_counter()
         q = max(1, int(round(trial.fs_hz / self.rate_hz)))
         fs = trial.fs_hz / q
@@ -100,7 +95,6 @@ class WaveletTracker:
             g = np.clip(g, 0.0, 0.999)
             # Independent samples per smoothing window grow with frequency: more weight there.
             w = np.nan_to_num(g / (1 - g) * self.freqs[:, None] / self.freqs[0], nan=0.0)
-        cal = self.calibration
         fitter = TrackFitter(
             self.freqs, cal.I_i, [{n: p.parameters[n] for n in TRACKED} for p in cal.points],
             cal.middle_point(),
