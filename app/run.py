@@ -145,4 +145,3 @@ def stop_running(out_dir: str | Path) -> int:
             f"{pidfile}: process {pid} is not running (stale pid file removed)"
         ) from None
     return pid
-

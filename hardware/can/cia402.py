@@ -213,8 +213,9 @@ class _HeartbeatWatch:
         return True
 
 
-def _pdo_writes(comm: int, mapping: int, cob_id: int, layout: PdoLayout, what: str
-                ) -> list[SdoWrite]:
+def _pdo_writes(
+    comm: int, mapping: int, cob_id: int, layout: PdoLayout, what: str
+) -> list[SdoWrite]:
     # CiA 301 mapping procedure: invalidate the PDO, clear the map, write entries, set the
     # count, then validate the PDO again. Drives abort mapping writes done in another order.
     writes = [
@@ -240,28 +241,57 @@ def startup_writes(config: DriveConfig) -> list[SdoWrite]:
     """The SDO writes enable() sends in pre-operational, in order (plain data, so the start-up
     sequence can be read and tested without a bus)."""
     n = config.node_id
-    writes = [SdoWrite(MODES_OF_OPERATION, 0, MODE_CST, 1, signed=True,
-                       what="mode of operation: cyclic synchronous torque")]
+    writes = [
+        SdoWrite(
+            MODES_OF_OPERATION,
+            0,
+            MODE_CST,
+            1,
+            signed=True,
+            what="mode of operation: cyclic synchronous torque",
+        )
+    ]
     writes += _pdo_writes(0x1400, 0x1600, rpdo_cob_id(1, n), RPDO1, "RPDO1")
     writes += _pdo_writes(0x1800, 0x1A00, tpdo_cob_id(1, n), TPDO1, "TPDO1")
-    writes += _pdo_writes(0x1801, 0x1A01, tpdo_cob_id(2, n), tpdo2_layout(sensor_object(config)),
-                          "TPDO2")
+    writes += _pdo_writes(
+        0x1801, 0x1A01, tpdo_cob_id(2, n), tpdo2_layout(sensor_object(config)), "TPDO2"
+    )
     # Drives often ship with more PDOs enabled (predefined connection set); switch off the ones
     # we do not use so they cannot add bus load to the 1 kHz cycle.
     for k in (2, 3, 4):
-        writes.append(SdoWrite(0x1400 + k - 1, 1, PDO_INVALID | rpdo_cob_id(k, n), 4,
-                               what=f"RPDO{k} off", optional=True))
+        writes.append(
+            SdoWrite(
+                0x1400 + k - 1,
+                1,
+                PDO_INVALID | rpdo_cob_id(k, n),
+                4,
+                what=f"RPDO{k} off",
+                optional=True,
+            )
+        )
     for k in (3, 4):
-        writes.append(SdoWrite(0x1800 + k - 1, 1, PDO_INVALID | tpdo_cob_id(k, n), 4,
-                               what=f"TPDO{k} off", optional=True))
+        writes.append(
+            SdoWrite(
+                0x1800 + k - 1,
+                1,
+                PDO_INVALID | tpdo_cob_id(k, n),
+                4,
+                what=f"TPDO{k} off",
+                optional=True,
+            )
+        )
     writes += [
-        SdoWrite(COMM_CYCLE_PERIOD, 0, round(config.sync_period_s * 1e6), 4,
-                 what="communication cycle period, µs", optional=True),
-        SdoWrite(MAX_TORQUE, 0, config.max_torque_permille, 2,
-                 what="max torque, 0.1 % of rated"),
+        SdoWrite(
+            COMM_CYCLE_PERIOD,
+            0,
+            round(config.sync_period_s * 1e6),
+            4,
+            what="communication cycle period, µs",
+            optional=True,
+        ),
+        SdoWrite(MAX_TORQUE, 0, config.max_torque_permille, 2, what="max torque, 0.1 % of rated"),
         SdoWrite(TARGET_TORQUE, 0, 0, 2, signed=True, what="target torque zero"),
-        SdoWrite(PRODUCER_HEARTBEAT, 0, config.heartbeat_ms, 2,
-                 what="producer heartbeat time, ms"),
+        SdoWrite(PRODUCER_HEARTBEAT, 0, config.heartbeat_ms, 2, what="producer heartbeat time, ms"),
     ]
     return writes
 
@@ -303,12 +333,17 @@ class CiA402Drive:
         # torque sensor node (source = "node"); None when the column torque comes otherwise
         self._sensor_id: int | None = ts.node_id if ts.source == "node" else None
         self._sensor_cob: int | None = ts.frame_cob_id
-        self._sensor_frame = SensorFrame(ts.byte_offset, ts.bits) \
-            if self._sensor_id is not None else None
-        self._sensor_hb = _HeartbeatWatch(ts.heartbeat_timeout_ms / 1000.0) \
-            if self._sensor_id is not None and ts.heartbeat_timeout_ms > 0 else None
-        self._sensor_hb_id = heartbeat_cob_id(self._sensor_id) \
-            if self._sensor_hb is not None else None
+        self._sensor_frame = (
+            SensorFrame(ts.byte_offset, ts.bits) if self._sensor_id is not None else None
+        )
+        self._sensor_hb = (
+            _HeartbeatWatch(ts.heartbeat_timeout_ms / 1000.0)
+            if self._sensor_id is not None and ts.heartbeat_timeout_ms > 0
+            else None
+        )
+        self._sensor_hb_id = (
+            heartbeat_cob_id(self._sensor_id) if self._sensor_hb is not None else None
+        )
         self._writes = startup_writes(config)
         self._tpdo_timeout_s = config.tpdo_timeout_ms / 1000.0
         self._hb_timeout_s = config.heartbeat_timeout_ms / 1000.0
@@ -361,9 +396,14 @@ class CiA402Drive:
         self._active: dict[tuple[str, object], DriveFault] = {}
         self._emcys: collections.deque[Emcy] = collections.deque(maxlen=_HISTORY)
 
-        self._reader = BusReader(bus, self._on_frame, self._on_reader_failure,
-                                 name=f"CiA402Drive node {n} rx", on_tick=self._on_tick,
-                                 on_error_frame=self._on_error_frame)
+        self._reader = BusReader(
+            bus,
+            self._on_frame,
+            self._on_reader_failure,
+            name=f"CiA402Drive node {n} rx",
+            on_tick=self._on_tick,
+            on_error_frame=self._on_error_frame,
+        )
         self._reader.start()
         self._closed = False
 
@@ -409,8 +449,7 @@ class CiA402Drive:
             sensor_hb_seen = self._sensor_hb.count if self._sensor_hb is not None else 0
             if self._sensor_id is not None:
                 step = f"NMT start of torque sensor node {self._sensor_id}"
-                self._network.send_message(NMT_COB_ID,
-                                           bytes([NmtCommand.START, self._sensor_id]))
+                self._network.send_message(NMT_COB_ID, bytes([NmtCommand.START, self._sensor_id]))
             step = "CiA 402 state machine"
             self._state_machine_to_enabled()
             step = "heartbeat"
@@ -426,8 +465,10 @@ class CiA402Drive:
                     raise DriveEnableError(f"drive reported a fault while enabling: {first}")
                 self._enabled = True
         except (SdoAbortedError, SdoCommunicationError, can.CanError, DriveEnableError) as exc:
-            message = (f"enable failed at {step}: {_describe(exc)} "
-                       f"(node {self.config.node_id}, {self._bus.channel_info})")
+            message = (
+                f"enable failed at {step}: {_describe(exc)} "
+                f"(node {self.config.node_id}, {self._bus.channel_info})"
+            )
             self._record("enable", message, key=None)
             self.disable()
             raise DriveEnableError(message) from exc
@@ -479,8 +520,9 @@ class CiA402Drive:
                 self._target = 0
                 if self._enabled:
                     self._try_send(self._rpdo_message(self._controlword, 0), "zero-torque RPDO")
-            self._record("command", f"non-finite torque command {torque_nm!r}; sent zero",
-                         key="nonfinite")
+            self._record(
+                "command", f"non-finite torque command {torque_nm!r}; sent zero", key="nonfinite"
+            )
             raise ValueError(f"torque command must be finite, got {torque_nm!r}")
         permille = self.scaling.torque_to_permille(torque_nm)
         with self._cycle_lock:
@@ -509,9 +551,12 @@ class CiA402Drive:
                 self.missed_tpdo += 1
                 self.consecutive_missed_tpdo += 1
                 if self.consecutive_missed_tpdo >= self.config.max_missed_tpdo:
-                    self._record("tpdo", f"{self.consecutive_missed_tpdo} SYNCs in a row without "
-                                 f"TPDO1+TPDO2 within {self.config.tpdo_timeout_ms} ms",
-                                 key="missed")
+                    self._record(
+                        "tpdo",
+                        f"{self.consecutive_missed_tpdo} SYNCs in a row without "
+                        f"TPDO1+TPDO2 within {self.config.tpdo_timeout_ms} ms",
+                        key="missed",
+                    )
             if self._sensor_id is not None:
                 self._count_sensor_frame(bool(fresh & _RX_SENSOR))
             self._latch(fresh)
@@ -531,8 +576,12 @@ class CiA402Drive:
     def ok(self) -> bool:
         """No active fault, heartbeat present (once watched; the torque sensor node's too, if
         watched), receive thread alive."""
-        return (not self._active and not self.heartbeat_lost and not self.sensor_heartbeat_lost
-                and self._reader.alive)
+        return (
+            not self._active
+            and not self.heartbeat_lost
+            and not self.sensor_heartbeat_lost
+            and self._reader.alive
+        )
 
     @property
     def enabled(self) -> bool:
@@ -648,8 +697,11 @@ class CiA402Drive:
     # -- cyclic internals ----------------------------------------------------------------------
 
     def _rpdo_message(self, controlword: int, target: int) -> can.Message:
-        return can.Message(arbitration_id=self._rpdo1_id, is_extended_id=False,
-                           data=RPDO1.encode((controlword, target)))
+        return can.Message(
+            arbitration_id=self._rpdo1_id,
+            is_extended_id=False,
+            data=RPDO1.encode((controlword, target)),
+        )
 
     @staticmethod
     def _sync_message() -> can.Message:
@@ -666,8 +718,12 @@ class CiA402Drive:
                 self._bus.send(msg)
             return True
         except can.CanError as exc:
-            self._record("bus", f"{what} (0x{msg.arbitration_id:03X}) not sent: {_describe(exc)} "
-                         f"on {self._bus.channel_info}", key=what)
+            self._record(
+                "bus",
+                f"{what} (0x{msg.arbitration_id:03X}) not sent: {_describe(exc)} "
+                f"on {self._bus.channel_info}",
+                key=what,
+            )
             return False
 
     def _latch(self, fresh: int) -> None:
@@ -703,10 +759,13 @@ class CiA402Drive:
         self.missed_sensor_frames += 1
         self.consecutive_missed_sensor_frames += 1
         if self.consecutive_missed_sensor_frames >= self.config.max_missed_tpdo:
-            self._record("sensor", f"torque sensor node {self._sensor_id}: no frame "
-                         f"0x{self._sensor_cob:03X} for {self.consecutive_missed_sensor_frames} "
-                         f"SYNCs in a row (timeout {self.config.tpdo_timeout_ms} ms)",
-                         key="sensor-missed")
+            self._record(
+                "sensor",
+                f"torque sensor node {self._sensor_id}: no frame "
+                f"0x{self._sensor_cob:03X} for {self.consecutive_missed_sensor_frames} "
+                f"SYNCs in a row (timeout {self.config.tpdo_timeout_ms} ms)",
+                key="sensor-missed",
+            )
 
     def _check_state(self) -> None:
         sw = self._statusword
@@ -715,8 +774,11 @@ class CiA402Drive:
         state = decode_statusword(sw)
         if state is not State402.OPERATION_ENABLED:
             self._enabled = False
-            self._record("state", f"drive left OPERATION ENABLED: statusword 0x{sw:04X} "
-                         f"({state.value})", key="left-enabled")
+            self._record(
+                "state",
+                f"drive left OPERATION ENABLED: statusword 0x{sw:04X} ({state.value})",
+                key="left-enabled",
+            )
 
     # -- receive thread ------------------------------------------------------------------------
 
@@ -743,8 +805,9 @@ class CiA402Drive:
                 self._on_sensor_heartbeat(parse_heartbeat(data))
         except FrameError as exc:
             self.bad_frames += 1
-            self._record("protocol", f"malformed frame 0x{cid:03X} [{bytes(data).hex()}]: {exc}",
-                         key=cid)
+            self._record(
+                "protocol", f"malformed frame 0x{cid:03X} [{bytes(data).hex()}]: {exc}", key=cid
+            )
 
     def _got(self, bit: int) -> None:
         mask = self._rx_mask | bit
@@ -766,12 +829,18 @@ class CiA402Drive:
             return
         if state == NmtState.BOOTUP:
             self._enabled = False
-            self._record("heartbeat", f"drive node {self.config.node_id} rebooted "
-                         "(boot-up message)", key="bootup")
+            self._record(
+                "heartbeat",
+                f"drive node {self.config.node_id} rebooted (boot-up message)",
+                key="bootup",
+            )
         elif self._enabled and state != NmtState.OPERATIONAL:
             self._enabled = False
-            self._record("heartbeat", f"drive left NMT OPERATIONAL: heartbeat reports "
-                         f"{nmt_state_name(state)}", key="nmt")
+            self._record(
+                "heartbeat",
+                f"drive left NMT OPERATIONAL: heartbeat reports {nmt_state_name(state)}",
+                key="nmt",
+            )
 
     def _on_sensor_heartbeat(self, state: int) -> None:
         hb = self._sensor_hb
@@ -794,8 +863,9 @@ class CiA402Drive:
         if emcy.is_reset:
             log.info("drive node %d: %s", self.config.node_id, emcy)
             return
-        self._record("emcy", f"drive node {self.config.node_id} {emcy}", code=emcy.code,
-                     key=emcy.code)
+        self._record(
+            "emcy", f"drive node {self.config.node_id} {emcy}", code=emcy.code, key=emcy.code
+        )
 
     def _on_tick(self, now: float) -> None:
         self._check_heartbeat(now)
@@ -808,8 +878,12 @@ class CiA402Drive:
         self._enabled = False
         age = self.heartbeat_age_s()
         seen = "never received" if math.isinf(age) else f"none for {age:.3f} s"
-        self._record("heartbeat", f"heartbeat lost: node {self.config.node_id} {seen} "
-                     f"(timeout {self.config.heartbeat_timeout_ms} ms)", key="lost")
+        self._record(
+            "heartbeat",
+            f"heartbeat lost: node {self.config.node_id} {seen} "
+            f"(timeout {self.config.heartbeat_timeout_ms} ms)",
+            key="lost",
+        )
 
     def _check_sensor_heartbeat(self, now: float) -> None:
         hb = self._sensor_hb
@@ -818,9 +892,12 @@ class CiA402Drive:
         hb.lost_reported = True
         age = hb.age_s(now)
         seen = "never received" if math.isinf(age) else f"none for {age:.3f} s"
-        self._record("sensor", f"torque sensor node {self._sensor_id}: heartbeat lost: {seen} "
-                     f"(timeout {self.config.torque_sensor.heartbeat_timeout_ms} ms)",
-                     key="sensor-heartbeat")
+        self._record(
+            "sensor",
+            f"torque sensor node {self._sensor_id}: heartbeat lost: {seen} "
+            f"(timeout {self.config.torque_sensor.heartbeat_timeout_ms} ms)",
+            key="sensor-heartbeat",
+        )
 
     def _on_error_frame(self, msg: can.Message) -> None:
         self.error_frames += 1
@@ -862,8 +939,7 @@ class CiA402Drive:
                 self._node.sdo.download(w.index, w.subindex, w.data)
             except SdoAbortedError as exc:
                 if w.optional and exc.code in (0x06020000, 0x06090011):
-                    log.info("drive has no 0x%04X:%02X (%s), skipped", w.index, w.subindex,
-                             w.what)
+                    log.info("drive has no 0x%04X:%02X (%s), skipped", w.index, w.subindex, w.what)
                     return
                 raise
 
@@ -871,15 +947,18 @@ class CiA402Drive:
         with self._sdo_lock:
             data = self._node.sdo.upload(index, subindex)
         if len(data) < size:
-            raise DriveEnableError(f"0x{index:04X}:{subindex:02X} answered {len(data)} bytes, "
-                                   f"expected {size}")
+            raise DriveEnableError(
+                f"0x{index:04X}:{subindex:02X} answered {len(data)} bytes, expected {size}"
+            )
         return int.from_bytes(data[:size], "little", signed=signed)
 
     def _check_mode(self) -> None:
         mode = self._sdo_read(MODES_OF_OPERATION_DISPLAY, 0, 1, signed=True)
         if mode != MODE_CST:
-            raise DriveEnableError(f"drive shows mode of operation {mode}, expected {MODE_CST} "
-                                   "(cyclic synchronous torque)")
+            raise DriveEnableError(
+                f"drive shows mode of operation {mode}, expected {MODE_CST} "
+                "(cyclic synchronous torque)"
+            )
 
     def _check_rated_torque(self) -> None:
         # The whole torque scaling rests on rated_torque_nm; a drive that knows its motor says
@@ -895,7 +974,8 @@ class CiA402Drive:
         if abs(milli / 1000.0 - configured) > 0.01 * configured:
             raise DriveEnableError(
                 f"drive reports motor rated torque {milli / 1000.0:g} N·m (0x6076), rig file "
-                f"[drive] rated_torque_nm is {configured:g} N·m; torque scaling would be wrong")
+                f"[drive] rated_torque_nm is {configured:g} N·m; torque scaling would be wrong"
+            )
 
     def _read_state(self) -> tuple[int, State402]:
         sw = self._sdo_read(STATUSWORD, 0, 2)
@@ -916,38 +996,43 @@ class CiA402Drive:
                 want = " or ".join(t.value for t in targets)
                 raise DriveEnableError(
                     f"drive did not reach {want} after {after} within "
-                    f"{self.config.state_timeout_s} s: statusword 0x{sw:04X} ({state.value})")
+                    f"{self.config.state_timeout_s} s: statusword 0x{sw:04X} ({state.value})"
+                )
             time.sleep(0.001)
 
     def _state_machine_to_enabled(self) -> None:
         sw, state = self._read_state()
         if state is State402.NOT_READY_TO_SWITCH_ON:
-            state = self._wait_state((State402.SWITCH_ON_DISABLED, State402.FAULT),
-                                     "power-up (automatic transition)")
+            state = self._wait_state(
+                (State402.SWITCH_ON_DISABLED, State402.FAULT), "power-up (automatic transition)"
+            )
         if state is State402.FAULT_REACTION_ACTIVE:
             state = self._wait_state((State402.FAULT,), "fault reaction")
         if state is State402.FAULT:
             # Fault reset acts on the rising edge of bit 7, so bit 7 goes low first.
             self._controlword_sdo(Controlword.DISABLE_VOLTAGE)
             self._controlword_sdo(Controlword.FAULT_RESET)
-            state = self._wait_state((State402.SWITCH_ON_DISABLED,),
-                                     "fault reset (controlword 0x0080)")
+            state = self._wait_state(
+                (State402.SWITCH_ON_DISABLED,), "fault reset (controlword 0x0080)"
+            )
             # The reset acknowledged whatever the drive reported before it.
             with self._fault_lock:
                 self._active = {k: v for k, v in self._active.items() if k[0] != "emcy"}
         elif state is not State402.SWITCH_ON_DISABLED:
             # Start from a known state whatever the previous session left behind.
             self._controlword_sdo(Controlword.DISABLE_VOLTAGE)
-            state = self._wait_state((State402.SWITCH_ON_DISABLED,),
-                                     "disable voltage (controlword 0x0000)")
+            state = self._wait_state(
+                (State402.SWITCH_ON_DISABLED,), "disable voltage (controlword 0x0000)"
+            )
         for cw, target in (
             (Controlword.SHUTDOWN, State402.READY_TO_SWITCH_ON),
             (Controlword.SWITCH_ON, State402.SWITCHED_ON),
             (Controlword.ENABLE_OPERATION, State402.OPERATION_ENABLED),
         ):
             self._controlword_sdo(cw)
-            self._wait_state((target,), f"{cw.name.lower().replace('_', ' ')} "
-                             f"(controlword 0x{int(cw):04X})")
+            self._wait_state(
+                (target,), f"{cw.name.lower().replace('_', ' ')} (controlword 0x{int(cw):04X})"
+            )
 
     def _wait_heartbeat_operational(self, seen_before: int) -> None:
         deadline = time.monotonic() + self._hb_timeout_s
@@ -959,7 +1044,8 @@ class CiA402Drive:
                     raise DriveEnableError(
                         f"no heartbeat with NMT state OPERATIONAL within "
                         f"{self.config.heartbeat_timeout_ms} ms after NMT start "
-                        f"(last heartbeat state: {state})")
+                        f"(last heartbeat state: {state})"
+                    )
                 self._hb_cond.wait(remaining)
 
     def _wait_sensor_operational(self, seen_before: int) -> None:
@@ -969,20 +1055,24 @@ class CiA402Drive:
             raise DriveEnableError(
                 f"torque sensor node {self._sensor_id}: no heartbeat with NMT state OPERATIONAL "
                 f"within {self.config.torque_sensor.heartbeat_timeout_ms} ms after NMT start "
-                f"(last heartbeat state: {state})")
+                f"(last heartbeat state: {state})"
+            )
         hb.since = time.monotonic()
 
     def _try_sdo_controlword(self, cw: int, what: str) -> None:
         if self._on_reader_thread():
-            self._record(what, "SDO controlword write skipped: called on the receive thread, "
-                         "where the answer could never be received", key=None)
+            self._record(
+                what,
+                "SDO controlword write skipped: called on the receive thread, "
+                "where the answer could never be received",
+                key=None,
+            )
             return
         try:
             with self._sdo_lock:
                 self._node.sdo.download(CONTROLWORD, 0, cw.to_bytes(2, "little"))
         except (SdoAbortedError, SdoCommunicationError, can.CanError) as exc:
-            self._record(what, f"controlword 0x{cw:04X} by SDO failed: {_describe(exc)}",
-                         key=None)
+            self._record(what, f"controlword 0x{cw:04X} by SDO failed: {_describe(exc)}", key=None)
 
 
 class DriveColumnTorque:

@@ -21,7 +21,6 @@ VelocityUnit = Literal["counts_per_s", "rpm"]
 CAN_BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
 
 
-
 def _frame_bits(data_bytes: int) -> int:
     """Worst-case bits of one standard data frame: 47 bits of overhead + data + bit stuffing."""
     return 47 + 8 * data_bytes + (34 + 8 * data_bytes - 1) // 4
@@ -152,8 +151,10 @@ class DriveConfig:
     @property
     def cycle_bits(self) -> int:
         """Worst-case bits one control cycle puts on the bus (with the sensor node's frame)."""
-        node = isinstance(self.torque_sensor, TorqueSensorConfig) and \
-            self.torque_sensor.source == "node"
+        node = (
+            isinstance(self.torque_sensor, TorqueSensorConfig)
+            and self.torque_sensor.source == "node"
+        )
         return _CYCLE_BITS + (_SENSOR_FRAME_BITS if node else 0)
 
     @property
@@ -190,16 +191,19 @@ def drive_config_from_dict(data: dict[str, Any], *, source: str = "<dict>") -> D
     safety_table = _table(data, "safety", source, required=True)
     drive = {k: v for k, v in drive.items() if k != "torque_sensor"}
 
-    sensor = TorqueSensorConfig(**_known(sensor_table or {}, TorqueSensorConfig, source,
-                                         "drive.torque_sensor"))
+    sensor = TorqueSensorConfig(
+        **_known(sensor_table or {}, TorqueSensorConfig, source, "drive.torque_sensor")
+    )
     safety = SafetyConfig(**_known(safety_table, SafetyConfig, source, "safety"))
-    kwargs = _known(drive, DriveConfig, source, "drive", exclude={"safety", "torque_sensor",
-                                                                    "source"})
+    kwargs = _known(
+        drive, DriveConfig, source, "drive", exclude={"safety", "torque_sensor", "source"}
+    )
     return DriveConfig(**kwargs, safety=safety, torque_sensor=sensor, source=source)
 
 
-def _table(data: dict[str, Any], key: str, source: str, *, required: bool,
-           section: str | None = None) -> dict[str, Any] | None:
+def _table(
+    data: dict[str, Any], key: str, source: str, *, required: bool, section: str | None = None
+) -> dict[str, Any] | None:
     value = data.get(key)
     full = f"{section}.{key}" if section else key
     if value is None:
@@ -207,20 +211,27 @@ def _table(data: dict[str, Any], key: str, source: str, *, required: bool,
             raise ConfigError(source, full, None, "table is missing")
         return None
     if not isinstance(value, dict):
-        raise ConfigError(source, section, key,
-                          f"expected a table [{full}], got {type(value).__name__}")
+        raise ConfigError(
+            source, section, key, f"expected a table [{full}], got {type(value).__name__}"
+        )
     return value
 
 
-def _known(table: dict[str, Any], cls: type, source: str, section: str,
-           exclude: frozenset[str] | set[str] = frozenset()) -> dict[str, Any]:
+def _known(
+    table: dict[str, Any],
+    cls: type,
+    source: str,
+    section: str,
+    exclude: frozenset[str] | set[str] = frozenset(),
+) -> dict[str, Any]:
     """Reject unknown keys (a typo must not silently fall back to a default) and missing
     required ones; type and range checks happen in ``_validate``."""
     names = {f.name for f in fields(cls)} - set(exclude)
     for key in table:
         if key not in names:
-            raise ConfigError(source, section, key,
-                              f"unknown field (known fields: {', '.join(sorted(names))})")
+            raise ConfigError(
+                source, section, key, f"unknown field (known fields: {', '.join(sorted(names))})"
+            )
     for f in fields(cls):
         if f.name in names and f.name not in table and _is_required(f):
             raise ConfigError(source, section, f.name, "required field is missing")
@@ -284,18 +295,22 @@ def _validate(cfg: DriveConfig) -> None:
     hb = c.int_("heartbeat_ms", 1, 0xFFFF)
     hb_timeout = c.int_("heartbeat_timeout_ms", 1)
     if hb_timeout <= hb:
-        raise c.fail("heartbeat_timeout_ms",
-                     f"must be longer than heartbeat_ms ({hb} ms), got {hb_timeout}; "
-                     "2 to 3 times heartbeat_ms is usual")
+        raise c.fail(
+            "heartbeat_timeout_ms",
+            f"must be longer than heartbeat_ms ({hb} ms), got {hb_timeout}; "
+            "2 to 3 times heartbeat_ms is usual",
+        )
     rate = c.float_("loop_rate_hz")
     period_ms = 1000.0 / rate
     if round(period_ms * 1000) < 1:
         raise c.fail("loop_rate_hz", f"period must be at least 1 µs, got {rate} Hz")
     tpdo_timeout = c.float_("tpdo_timeout_ms")
     if tpdo_timeout >= period_ms:
-        raise c.fail("tpdo_timeout_ms",
-                     f"must be shorter than the loop period ({period_ms:g} ms at "
-                     f"loop_rate_hz {rate:g}), got {tpdo_timeout}")
+        raise c.fail(
+            "tpdo_timeout_ms",
+            f"must be shorter than the loop period ({period_ms:g} ms at "
+            f"loop_rate_hz {rate:g}), got {tpdo_timeout}",
+        )
     c.int_("max_missed_tpdo", 1)
     c.float_("state_timeout_s")
     c.choice("velocity_unit", ("counts_per_s", "rpm"))
@@ -305,10 +320,12 @@ def _validate(cfg: DriveConfig) -> None:
         raise ConfigError(src, "drive.torque_sensor", None, "expected a table")
     if cfg.bus_load > MAX_BUS_LOAD:
         need = math.ceil(cfg.cycle_bits * rate / MAX_BUS_LOAD)
-        raise c.fail("bitrate",
-                     f"{cfg.bitrate} bit/s cannot carry one control cycle (~{cfg.cycle_bits} bits) "
-                     f"at loop_rate_hz {rate:g} within {MAX_BUS_LOAD:.0%} bus load "
-                     f"(needs ≥ {need} bit/s)")
+        raise c.fail(
+            "bitrate",
+            f"{cfg.bitrate} bit/s cannot carry one control cycle (~{cfg.cycle_bits} bits) "
+            f"at loop_rate_hz {rate:g} within {MAX_BUS_LOAD:.0%} bus load "
+            f"(needs ≥ {need} bit/s)",
+        )
 
     s = _Check(cfg.safety, src, "safety")
     max_t = s.float_("max_torque_nm")
@@ -316,9 +333,11 @@ def _validate(cfg: DriveConfig) -> None:
     s.float_("soft_angle_limit_deg")
     permille = max_t / (cfg.gear_ratio * cfg.rated_torque_nm) * 1000
     if permille > 0x7FFF:
-        raise s.fail("max_torque_nm",
-                     f"{max_t} N·m is {permille:.0f} ‰ of rated torque × gear, more than the "
-                     "drive's 16-bit torque objects can express (32767 ‰)")
+        raise s.fail(
+            "max_torque_nm",
+            f"{max_t} N·m is {permille:.0f} ‰ of rated torque × gear, more than the "
+            "drive's 16-bit torque objects can express (32767 ‰)",
+        )
 
     t = _Check(cfg.torque_sensor, src, "drive.torque_sensor")
     source = t.choice("source", ("pdo", "node", "none"))
@@ -336,8 +355,9 @@ def _validate(cfg: DriveConfig) -> None:
 
 def _validate_sensor_node(t: _Check, sensor: TorqueSensorConfig, drive_id: int) -> None:
     if sensor.node_id is None:
-        raise t.fail("node_id", "required for source = 'node': the sensor's CANopen node id "
-                     "(1..127)")
+        raise t.fail(
+            "node_id", "required for source = 'node': the sensor's CANopen node id (1..127)"
+        )
     sensor_id = t.int_("node_id", 1, 127)
     if sensor_id == drive_id:
         raise t.fail("node_id", f"must differ from the drive's [drive] node_id {drive_id}")
@@ -346,9 +366,12 @@ def _validate_sensor_node(t: _Check, sensor: TorqueSensorConfig, drive_id: int) 
         # The driver dispatches frames by COB-ID alone: a sensor frame on one of these would be
         # taken for (or hide) the drive's frame, or a SYNC / NMT command.
         taken = {
-            0x000: "NMT", 0x080: "SYNC",
-            0x080 + drive_id: "the drive's EMCY", 0x180 + drive_id: "the drive's TPDO1",
-            0x280 + drive_id: "the drive's TPDO2", 0x200 + drive_id: "the drive's RPDO1",
+            0x000: "NMT",
+            0x080: "SYNC",
+            0x080 + drive_id: "the drive's EMCY",
+            0x180 + drive_id: "the drive's TPDO1",
+            0x280 + drive_id: "the drive's TPDO2",
+            0x200 + drive_id: "the drive's RPDO1",
             0x580 + drive_id: "the drive's SDO response",
             0x600 + drive_id: "the drive's SDO request",
             0x700 + drive_id: "the drive's heartbeat",
@@ -361,7 +384,9 @@ def _validate_sensor_node(t: _Check, sensor: TorqueSensorConfig, drive_id: int) 
     if isinstance(offset, bool) or not isinstance(offset, int):
         raise t.fail("byte_offset", f"expected an integer, {t.got('byte_offset')}")
     if not 0 <= offset <= 8 - size:
-        raise t.fail("byte_offset",
-                     f"a {sensor.bits}-bit value at byte_offset {offset} does not fit in an "
-                     f"8-byte CAN frame (byte_offset must be 0..{8 - size})")
+        raise t.fail(
+            "byte_offset",
+            f"a {sensor.bits}-bit value at byte_offset {offset} does not fit in an "
+            f"8-byte CAN frame (byte_offset must be 0..{8 - size})",
+        )
     t.int_("heartbeat_timeout_ms", 0)

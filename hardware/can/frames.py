@@ -164,8 +164,14 @@ class FrameError(ValueError):
     """A received payload does not have the layout the protocol defines."""
 
 
-_STRUCT_CODES = {(8, False): "B", (8, True): "b", (16, False): "H", (16, True): "h",
-                 (32, False): "I", (32, True): "i"}
+_STRUCT_CODES = {
+    (8, False): "B",
+    (8, True): "b",
+    (16, False): "H",
+    (16, True): "h",
+    (32, False): "I",
+    (32, True): "i",
+}
 
 
 @dataclass(frozen=True)
@@ -236,8 +242,9 @@ class SensorFrame:
         if self.bits not in (16, 32):
             raise ValueError(f"sensor value must be 16 or 32 bits, got {self.bits}")
         if not 0 <= self.byte_offset <= 8 - self.bits // 8:
-            raise ValueError(f"a {self.bits}-bit value at byte {self.byte_offset} does not fit "
-                             "in 8 bytes")
+            raise ValueError(
+                f"a {self.bits}-bit value at byte {self.byte_offset} does not fit in 8 bytes"
+            )
 
     @property
     def size(self) -> int:
@@ -250,9 +257,11 @@ class SensorFrame:
         :raises FrameError: the frame ends before the value does.
         """
         if len(data) < self.size:
-            raise FrameError(f"sensor frame has {len(data)} bytes, the value needs "
-                             f"{self.size} ({self.bits} bits at byte {self.byte_offset})")
-        return int.from_bytes(data[self.byte_offset:self.size], "little", signed=True)
+            raise FrameError(
+                f"sensor frame has {len(data)} bytes, the value needs "
+                f"{self.size} ({self.bits} bits at byte {self.byte_offset})"
+            )
+        return int.from_bytes(data[self.byte_offset : self.size], "little", signed=True)
 
     def encode(self, raw: int) -> bytes:
         """``size`` bytes: zeros, then the value.
@@ -362,8 +371,10 @@ class Emcy:
         return emcy_text(self.code)
 
     def __str__(self) -> str:
-        return (f"EMCY 0x{self.code:04X} ({self.text}), error register "
-                f"0x{self.error_register:02X}, vendor data {self.vendor_data.hex() or '-'}")
+        return (
+            f"EMCY 0x{self.code:04X} ({self.text}), error register "
+            f"0x{self.error_register:02X}, vendor data {self.vendor_data.hex() or '-'}"
+        )
 
 
 def parse_emcy(data: bytes | bytearray, timestamp: float = 0.0) -> Emcy:

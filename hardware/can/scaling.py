@@ -31,8 +31,9 @@ class DriveScaling:
     def __init__(self, config: DriveConfig):
         self.sign = config.sign
         self._nm_per_permille = config.sign * config.gear_ratio * config.rated_torque_nm / 1000.0
-        self._rad_per_count = config.sign * _TWO_PI / (config.encoder_counts_per_rev
-                                                       * config.gear_ratio)
+        self._rad_per_count = (
+            config.sign * _TWO_PI / (config.encoder_counts_per_rev * config.gear_ratio)
+        )
         if config.velocity_unit == "rpm":
             self._rad_s_per_vel_unit = config.sign * _TWO_PI / 60.0 / config.gear_ratio
         else:

@@ -83,8 +83,7 @@ log = logging.getLogger(__name__)
 
 DEVICE_TYPE_SERVO = 0x0002_0192  # CiA 402 (0x192), servo drive
 _SIGNED = (INTEGER8, INTEGER16, INTEGER32)
-_BITS = {INTEGER8: 8, INTEGER16: 16, INTEGER32: 32, UNSIGNED8: 8, UNSIGNED16: 16,
-         UNSIGNED32: 32}
+_BITS = {INTEGER8: 8, INTEGER16: 16, INTEGER32: 32, UNSIGNED8: 8, UNSIGNED16: 16, UNSIGNED32: 32}
 
 ABORT_NOT_EXIST = 0x0602_0000
 ABORT_NOT_MAPPABLE = 0x0604_0041
@@ -108,8 +107,15 @@ class Plant(Protocol):
 # -- object dictionary --------------------------------------------------------------------------
 
 
-def _var(name: str, index: int, subindex: int, data_type: int, access: str,
-         default: int | None = None, mappable: bool = False) -> ODVariable:
+def _var(
+    name: str,
+    index: int,
+    subindex: int,
+    data_type: int,
+    access: str,
+    default: int | None = None,
+    mappable: bool = False,
+) -> ODVariable:
     v = ODVariable(name, index, subindex)
     v.data_type = data_type
     v.access_type = access
@@ -125,16 +131,26 @@ def _record(name: str, index: int, members: list[ODVariable]) -> ODRecord:
     return r
 
 
-def _pdo_objects(od: ObjectDictionary, comm: int, mapping: int, label: str, cob_id: int,
-                 trans_type: int, entries: list[int], transmit: bool) -> None:
+def _pdo_objects(
+    od: ObjectDictionary,
+    comm: int,
+    mapping: int,
+    label: str,
+    cob_id: int,
+    trans_type: int,
+    entries: list[int],
+    transmit: bool,
+) -> None:
     comm_members = [
         _var("Highest sub-index supported", comm, 0, UNSIGNED8, "const", 5 if transmit else 2),
         _var("COB-ID", comm, 1, UNSIGNED32, "rw", cob_id),
         _var("Transmission type", comm, 2, UNSIGNED8, "rw", trans_type),
     ]
     if transmit:
-        comm_members += [_var("Inhibit time", comm, 3, UNSIGNED16, "rw", 0),
-                         _var("Event timer", comm, 5, UNSIGNED16, "rw", 0)]
+        comm_members += [
+            _var("Inhibit time", comm, 3, UNSIGNED16, "rw", 0),
+            _var("Event timer", comm, 5, UNSIGNED16, "rw", 0),
+        ]
     od.add_object(_record(f"{label} communication parameter", comm, comm_members))
     map_members = [_var("Number of mapped objects", mapping, 0, UNSIGNED8, "rw", len(entries))]
     for sub in range(1, 9):
@@ -143,8 +159,9 @@ def _pdo_objects(od: ObjectDictionary, comm: int, mapping: int, label: str, cob_
     od.add_object(_record(f"{label} mapping parameter", mapping, map_members))
 
 
-def build_object_dictionary(config: DriveConfig, *, motor_rated_torque_nm: float | None = None
-                            ) -> ObjectDictionary:
+def build_object_dictionary(
+    config: DriveConfig, *, motor_rated_torque_nm: float | None = None
+) -> ObjectDictionary:
     """The simulated drive's object dictionary. Defaults mimic a drive out of the box: the
     predefined PDO set with a mapping the driver has to replace, TPDO3/TPDO4 enabled on SYNC,
     no heartbeat until configured."""
@@ -158,23 +175,48 @@ def build_object_dictionary(config: DriveConfig, *, motor_rated_torque_nm: float
     add(_var("COB-ID SYNC", 0x1005, 0, UNSIGNED32, "rw", SYNC_COB_ID))
     add(_var("Communication cycle period", COMM_CYCLE_PERIOD, 0, UNSIGNED32, "rw", 0))
     add(_var("Producer heartbeat time", PRODUCER_HEARTBEAT, 0, UNSIGNED16, "rw", 0))
-    add(_record("Identity object", 0x1018, [
-        _var("Highest sub-index supported", 0x1018, 0, UNSIGNED8, "const", 4),
-        _var("Vendor-ID", 0x1018, 1, UNSIGNED32, "ro", 0),
-        _var("Product code", 0x1018, 2, UNSIGNED32, "ro", 0x5354_4C42),  # "STLB"
-        _var("Revision number", 0x1018, 3, UNSIGNED32, "ro", 1),
-        _var("Serial number", 0x1018, 4, UNSIGNED32, "ro", 0),
-    ]))
+    add(
+        _record(
+            "Identity object",
+            0x1018,
+            [
+                _var("Highest sub-index supported", 0x1018, 0, UNSIGNED8, "const", 4),
+                _var("Vendor-ID", 0x1018, 1, UNSIGNED32, "ro", 0),
+                _var("Product code", 0x1018, 2, UNSIGNED32, "ro", 0x5354_4C42),  # "STLB"
+                _var("Revision number", 0x1018, 3, UNSIGNED32, "ro", 1),
+                _var("Serial number", 0x1018, 4, UNSIGNED32, "ro", 0),
+            ],
+        )
+    )
     for k in range(1, 5):
         default_map = [0x6040_0010] if k == 1 else []
-        _pdo_objects(od, 0x1400 + k - 1, 0x1600 + k - 1, f"RPDO{k}",
-                     rpdo_cob_id(k, n) | (0 if k == 1 else PDO_INVALID), 255, default_map,
-                     transmit=False)
-    tpdo_defaults = {1: [0x6041_0010], 2: [0x6041_0010, 0x6064_0020], 3: [0x6041_0010],
-                     4: [0x6064_0020]}
+        _pdo_objects(
+            od,
+            0x1400 + k - 1,
+            0x1600 + k - 1,
+            f"RPDO{k}",
+            rpdo_cob_id(k, n) | (0 if k == 1 else PDO_INVALID),
+            255,
+            default_map,
+            transmit=False,
+        )
+    tpdo_defaults = {
+        1: [0x6041_0010],
+        2: [0x6041_0010, 0x6064_0020],
+        3: [0x6041_0010],
+        4: [0x6064_0020],
+    }
     for k in range(1, 5):
-        _pdo_objects(od, 0x1800 + k - 1, 0x1A00 + k - 1, f"TPDO{k}", tpdo_cob_id(k, n),
-                     1 if k >= 3 else 255, tpdo_defaults[k], transmit=True)
+        _pdo_objects(
+            od,
+            0x1800 + k - 1,
+            0x1A00 + k - 1,
+            f"TPDO{k}",
+            tpdo_cob_id(k, n),
+            1 if k >= 3 else 255,
+            tpdo_defaults[k],
+            transmit=True,
+        )
 
     sensor = config.torque_sensor
     if sensor.source == "pdo":
@@ -183,9 +225,23 @@ def build_object_dictionary(config: DriveConfig, *, motor_rated_torque_nm: float
         if sensor.subindex == 0:
             add(obj)
         else:
-            add(_record("Column torque sensor", sensor.index, [
-                _var("Highest sub-index supported", sensor.index, 0, UNSIGNED8, "const",
-                     sensor.subindex), obj]))
+            add(
+                _record(
+                    "Column torque sensor",
+                    sensor.index,
+                    [
+                        _var(
+                            "Highest sub-index supported",
+                            sensor.index,
+                            0,
+                            UNSIGNED8,
+                            "const",
+                            sensor.subindex,
+                        ),
+                        obj,
+                    ],
+                )
+            )
 
     rated = config.rated_torque_nm if motor_rated_torque_nm is None else motor_rated_torque_nm
     add(_var("Error code", ERROR_CODE, 0, UNSIGNED16, "ro", 0, mappable=True))
@@ -193,8 +249,17 @@ def build_object_dictionary(config: DriveConfig, *, motor_rated_torque_nm: float
     add(_var("Statusword", STATUSWORD, 0, UNSIGNED16, "ro", 0, mappable=True))
     add(_var("Quick stop option code", QUICK_STOP_OPTION, 0, INTEGER16, "rw", 6))
     add(_var("Modes of operation", MODES_OF_OPERATION, 0, INTEGER8, "rw", 0, mappable=True))
-    add(_var("Modes of operation display", MODES_OF_OPERATION_DISPLAY, 0, INTEGER8, "ro", 0,
-             mappable=True))
+    add(
+        _var(
+            "Modes of operation display",
+            MODES_OF_OPERATION_DISPLAY,
+            0,
+            INTEGER8,
+            "ro",
+            0,
+            mappable=True,
+        )
+    )
     add(_var("Position actual value", POSITION_ACTUAL, 0, INTEGER32, "ro", 0, mappable=True))
     add(_var("Velocity actual value", VELOCITY_ACTUAL, 0, INTEGER32, "ro", 0, mappable=True))
     add(_var("Target torque", TARGET_TORQUE, 0, INTEGER16, "rw", 0, mappable=True))
@@ -216,8 +281,15 @@ class SimulatedDrive:
     FAULT with EMCY 0x6100, as a real drive's firmware error would.
     """
 
-    def __init__(self, bus: can.BusABC, config: DriveConfig, plant: Plant, *,
-                 autostart: bool = True, motor_rated_torque_nm: float | None = None):
+    def __init__(
+        self,
+        bus: can.BusABC,
+        config: DriveConfig,
+        plant: Plant,
+        *,
+        autostart: bool = True,
+        motor_rated_torque_nm: float | None = None,
+    ):
         self.config = config
         self.plant = plant
         self.scaling = DriveScaling(config)
@@ -252,8 +324,9 @@ class SimulatedDrive:
         self.sync_count = 0
         self.ignored_frames = 0
         self.errors: list[BaseException] = []
-        self._reader = BusReader(bus, self._on_frame, self._on_reader_failure,
-                                 name=f"SimulatedDrive node {n} rx")
+        self._reader = BusReader(
+            bus, self._on_frame, self._on_reader_failure, name=f"SimulatedDrive node {n} rx"
+        )
         self._started = False
         if autostart:
             self.start()
@@ -291,8 +364,14 @@ class SimulatedDrive:
             self._silent = True
             self._node.nmt.stop_heartbeat()
 
-    def inject_fault(self, code: int = 0x2310, error_register: int = 0x03,
-                     vendor_data: bytes = b"", *, resettable: bool = True) -> None:
+    def inject_fault(
+        self,
+        code: int = 0x2310,
+        error_register: int = 0x03,
+        vendor_data: bytes = b"",
+        *,
+        resettable: bool = True,
+    ) -> None:
         """Go to FAULT (power stage off) and send EMCY ``code``. With ``resettable=False`` a
         fault reset leaves the drive in FAULT (the cause persists)."""
         with self._lock:
@@ -370,8 +449,10 @@ class SimulatedDrive:
         nmt.on_command(NMT_COB_ID, data, 0.0)
         if nmt._state != NmtState.OPERATIONAL:
             self._rpdo_pending = None
-            if was_operational and self.state in (State402.OPERATION_ENABLED,
-                                                  State402.QUICK_STOP_ACTIVE):
+            if was_operational and self.state in (
+                State402.OPERATION_ENABLED,
+                State402.QUICK_STOP_ACTIVE,
+            ):
                 # Losing the PDO channel must not leave torque on (CiA 402 0x6007 "disable
                 # voltage" reaction).
                 self.state = State402.SWITCH_ON_DISABLED
@@ -543,8 +624,9 @@ class SimulatedDrive:
     def _on_sdo_read(self, index: int, subindex: int, od: ODVariable, **_: object) -> int | None:
         return self._dynamic(index, subindex)
 
-    def _on_sdo_write(self, index: int, subindex: int, od: ODVariable, data: bytes,
-                      **_: object) -> None:
+    def _on_sdo_write(
+        self, index: int, subindex: int, od: ODVariable, data: bytes, **_: object
+    ) -> None:
         value = od.decode_raw(data)
         if index == MODES_OF_OPERATION and value != MODE_CST:
             raise SdoAbortedError(ABORT_VALUE_RANGE)
@@ -561,8 +643,11 @@ class SimulatedDrive:
         if is_comm:
             if subindex == 1:
                 current = self.od_value(index, 1)
-                if not current & PDO_INVALID and not value & PDO_INVALID and (
-                        value & 0x7FF) != (current & 0x7FF):
+                if (
+                    not current & PDO_INVALID
+                    and not value & PDO_INVALID
+                    and (value & 0x7FF) != (current & 0x7FF)
+                ):
                     raise SdoAbortedError(ABORT_VALUE_RANGE)  # COB-ID change while valid
             return
         comm = index - 0x200
@@ -592,8 +677,9 @@ class SimulatedDrive:
 
     def _layout(self, mapping: int) -> PdoLayout:
         count = self.od_value(mapping, 0)
-        return PdoLayout([self._mapping_target(self.od_value(mapping, sub))
-                          for sub in range(1, count + 1)])
+        return PdoLayout(
+            [self._mapping_target(self.od_value(mapping, sub)) for sub in range(1, count + 1)]
+        )
 
     def _refresh_layouts(self) -> None:
         if not self._layouts_dirty:

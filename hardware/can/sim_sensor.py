@@ -104,12 +104,21 @@ class SimulatedTorqueSensor:
     :raises ValueError: the config's torque sensor is not ``source = "node"``.
     """
 
-    def __init__(self, bus: can.BusABC, config: DriveConfig, plant: SharedPlant, *,
-                 heartbeat_ms: int | None = None, autostart: bool = True):
+    def __init__(
+        self,
+        bus: can.BusABC,
+        config: DriveConfig,
+        plant: SharedPlant,
+        *,
+        heartbeat_ms: int | None = None,
+        autostart: bool = True,
+    ):
         sensor = config.torque_sensor
         if sensor.source != "node" or sensor.node_id is None:
-            raise ValueError(f"{config.source}: [drive.torque_sensor] is not a sensor node "
-                             f"(source = {sensor.source!r})")
+            raise ValueError(
+                f"{config.source}: [drive.torque_sensor] is not a sensor node "
+                f"(source = {sensor.source!r})"
+            )
         self.config = config
         self.plant = plant
         self.node_id: int = sensor.node_id
@@ -135,9 +144,14 @@ class SimulatedTorqueSensor:
         self.sent_frames = 0
         self.ignored_frames = 0
         self.errors: list[BaseException] = []
-        self._reader = BusReader(bus, self._on_frame, self._on_reader_failure,
-                                 name=f"SimulatedTorqueSensor node {self.node_id} rx",
-                                 on_tick=self._on_tick, poll_s=0.005)
+        self._reader = BusReader(
+            bus,
+            self._on_frame,
+            self._on_reader_failure,
+            name=f"SimulatedTorqueSensor node {self.node_id} rx",
+            on_tick=self._on_tick,
+            poll_s=0.005,
+        )
         self._started = False
         if autostart:
             self.start()
@@ -211,8 +225,7 @@ class SimulatedTorqueSensor:
         except (ValueError, OverflowError) as exc:
             # A NaN or infinite value: an amplifier would send nothing usable either.
             self.errors.append(exc)
-            log.error("simulated torque sensor node %d: cannot encode %r", self.node_id,
-                      state[3])
+            log.error("simulated torque sensor node %d: cannot encode %r", self.node_id, state[3])
             return
         self._send(self.cob_id, data)
         self.sent_frames += 1

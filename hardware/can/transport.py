@@ -30,8 +30,13 @@ def driver_filters(config: DriveConfig) -> list[can.typechecking.CanFilter]:
     hardware interfaces the filtering happens in the controller or kernel, which keeps other
     nodes' traffic out of the Python receive thread."""
     n = config.node_id
-    ids = [emcy_cob_id(n), tpdo_cob_id(1, n), tpdo_cob_id(2, n), sdo_tx_cob_id(n),
-           heartbeat_cob_id(n)]
+    ids = [
+        emcy_cob_id(n),
+        tpdo_cob_id(1, n),
+        tpdo_cob_id(2, n),
+        sdo_tx_cob_id(n),
+        heartbeat_cob_id(n),
+    ]
     sensor = config.torque_sensor
     if sensor.source == "node":
         ids.append(sensor.frame_cob_id)

@@ -88,30 +88,64 @@ def test_good_file_values_and_defaults(tmp_path):
         ("node_id = 3", 'node_id = "three"', "drive", "node_id", "expected an integer"),
         ("node_id = 3", "node_id = 128", "drive", "node_id", "1..127"),
         ("node_id = 3", "node_id = true", "drive", "node_id", "expected an integer"),
-        ('interface = "socketcan"', 'interface = "sockcan"', "drive", "interface",
-         "expected one of"),
+        (
+            'interface = "socketcan"',
+            'interface = "sockcan"',
+            "drive",
+            "interface",
+            "expected one of",
+        ),
         ("bitrate = 1_000_000", "bitrate = 999", "drive", "bitrate", "expected one of"),
-        ("bitrate = 1_000_000", "bitrate = 250_000", "drive", "bitrate",
-         "cannot carry one control cycle"),
+        (
+            "bitrate = 1_000_000",
+            "bitrate = 250_000",
+            "drive",
+            "bitrate",
+            "cannot carry one control cycle",
+        ),
         ("gear_ratio = 3.0", "gear_ratio = 0", "drive", "gear_ratio", "> 0"),
         ("gear_ratio = 3.0", "gear_ratio = nan", "drive", "gear_ratio", "finite"),
         ("sign = -1", "sign = 0", "drive", "sign", "expected one of 1, -1"),
-        ("sign = -1", "sign = -1\nheartbeat_ms = 300", "drive", "heartbeat_timeout_ms",
-         "longer than heartbeat_ms"),
-        ("sign = -1", "sign = -1\ntpdo_timeout_ms = 1.5", "drive", "tpdo_timeout_ms",
-         "shorter than the loop period"),
+        (
+            "sign = -1",
+            "sign = -1\nheartbeat_ms = 300",
+            "drive",
+            "heartbeat_timeout_ms",
+            "longer than heartbeat_ms",
+        ),
+        (
+            "sign = -1",
+            "sign = -1\ntpdo_timeout_ms = 1.5",
+            "drive",
+            "tpdo_timeout_ms",
+            "shorter than the loop period",
+        ),
         ("sign = -1", "sign = -1\ngear_ration = 2", "drive", "gear_ration", "unknown field"),
-        ('source = "pdo"', 'source = "can"', "drive.torque_sensor", "source",
-         "expected one of 'pdo', 'node', 'none'"),
+        (
+            'source = "pdo"',
+            'source = "can"',
+            "drive.torque_sensor",
+            "source",
+            "expected one of 'pdo', 'node', 'none'",
+        ),
         ("index = 0x2001", "index = 0x1000", "drive.torque_sensor", "index", "8192..40959"),
         ("bits = 16", "bits = 24", "drive.torque_sensor", "bits", "expected one of 16, 32"),
-        ('source = "pdo"', 'source = "node"\nnode_id = 3', "drive.torque_sensor", "node_id",
-         "must differ from the drive's"),
+        (
+            'source = "pdo"',
+            'source = "node"\nnode_id = 3',
+            "drive.torque_sensor",
+            "node_id",
+            "must differ from the drive's",
+        ),
         ("max_torque_nm = 15.0", "max_torque_nm = -1.0", "safety", "max_torque_nm", "> 0"),
-        ("max_torque_nm = 15.0", "max_torque_nm = 1e6", "safety", "max_torque_nm",
-         "32767"),
-        ("soft_angle_limit_deg = 360.0\n", "", "safety", "soft_angle_limit_deg",
-         "required field is missing"),
+        ("max_torque_nm = 15.0", "max_torque_nm = 1e6", "safety", "max_torque_nm", "32767"),
+        (
+            "soft_angle_limit_deg = 360.0\n",
+            "",
+            "safety",
+            "soft_angle_limit_deg",
+            "required field is missing",
+        ),
     ],
 )
 def test_errors_name_file_section_field(tmp_path, old, new, section, field, expected):
@@ -152,8 +186,11 @@ def test_node_torque_sensor_config_reaches_the_driver(tmp_path):
     # Behaviour of source = "node": tests/hardware/test_can_sensor_node.py
     text = edit(GOOD, 'source = "pdo"', 'source = "node"\nnode_id = 9\ncob_id = 0x189')
     text = edit(text, "index = 0x2001\nsubindex = 2\n", "")
-    text = edit(text, 'interface = "socketcan"\nchannel = "can0"',
-                'interface = "virtual"\nchannel = "cfg-node-sensor"')
+    text = edit(
+        text,
+        'interface = "socketcan"\nchannel = "can0"',
+        'interface = "virtual"\nchannel = "cfg-node-sensor"',
+    )
     cfg = load_drive_config(write(tmp_path, text))
     assert {"can_id": 0x189, "can_mask": 0x7FF, "extended": False} in driver_filters(cfg)
     bus = can.Bus(interface="virtual", channel="cfg-node-sensor")
@@ -165,8 +202,11 @@ def test_node_torque_sensor_config_reaches_the_driver(tmp_path):
 
 
 def test_open_bus_uses_rig_file_and_filters(tmp_path):
-    text = edit(GOOD, 'interface = "socketcan"\nchannel = "can0"',
-                'interface = "virtual"\nchannel = "cfg-open-bus"')
+    text = edit(
+        GOOD,
+        'interface = "socketcan"\nchannel = "can0"',
+        'interface = "virtual"\nchannel = "cfg-open-bus"',
+    )
     cfg = load_drive_config(write(tmp_path, text))
     bus = open_bus(cfg)
     other = can.Bus(interface="virtual", channel="cfg-open-bus")

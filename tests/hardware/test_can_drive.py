@@ -35,8 +35,9 @@ class SpringDamperWheel:
     """J θ'' + b θ' + k θ = u: a wheel held by a spring-damper arm, integrated exactly for
     piecewise-constant torque (zero-order hold), so samples equal the continuous solution."""
 
-    def __init__(self, dt: float, inertia: float = 0.05, damping: float = 0.2,
-                 stiffness: float = 2.0):
+    def __init__(
+        self, dt: float, inertia: float = 0.05, damping: float = 0.2, stiffness: float = 2.0
+    ):
         self.j, self.b, self.k = inertia, damping, stiffness
         m = np.zeros((3, 3))
         m[:2, :2] = [[0.0, 1.0], [-stiffness / inertia, -damping / inertia]]
@@ -69,12 +70,20 @@ class SpringDamperWheel:
 
 def base_config(channel: str, **changes) -> DriveConfig:
     cfg = DriveConfig(
-        node_id=7, interface="virtual", channel=channel, bitrate=1_000_000,
-        encoder_counts_per_rev=131072, rated_torque_nm=10.0, gear_ratio=3.0, sign=-1,
-        safety=SafetyConfig(max_torque_nm=8.0, max_slew_nm_per_s=100.0,
-                            soft_angle_limit_deg=360.0),
+        node_id=7,
+        interface="virtual",
+        channel=channel,
+        bitrate=1_000_000,
+        encoder_counts_per_rev=131072,
+        rated_torque_nm=10.0,
+        gear_ratio=3.0,
+        sign=-1,
+        safety=SafetyConfig(max_torque_nm=8.0, max_slew_nm_per_s=100.0, soft_angle_limit_deg=360.0),
         # generous TPDO timeout: these tests check behaviour, not timing, on a busy machine
-        heartbeat_ms=20, heartbeat_timeout_ms=100, loop_rate_hz=20.0, tpdo_timeout_ms=45.0,
+        heartbeat_ms=20,
+        heartbeat_timeout_ms=100,
+        loop_rate_hz=20.0,
+        tpdo_timeout_ms=45.0,
         state_timeout_s=0.2,
     )
     return replace(cfg, **changes)
@@ -83,13 +92,16 @@ def base_config(channel: str, **changes) -> DriveConfig:
 class Rig:
     def __init__(self, cfg: DriveConfig, plant=None, *, with_sim: bool = True, **sim_kwargs):
         self.cfg = cfg
-        self.host_bus = can.Bus(interface="virtual", channel=cfg.channel,
-                                receive_own_messages=False)
-        self.drive_bus = can.Bus(interface="virtual", channel=cfg.channel,
-                                 receive_own_messages=False)
+        self.host_bus = can.Bus(
+            interface="virtual", channel=cfg.channel, receive_own_messages=False
+        )
+        self.drive_bus = can.Bus(
+            interface="virtual", channel=cfg.channel, receive_own_messages=False
+        )
         self.plant = plant if plant is not None else SpringDamperWheel(0.01)
-        self.sim = SimulatedDrive(self.drive_bus, cfg, self.plant, **sim_kwargs) \
-            if with_sim else None
+        self.sim = (
+            SimulatedDrive(self.drive_bus, cfg, self.plant, **sim_kwargs) if with_sim else None
+        )
         self.faults: list[DriveFault] = []
         self.fault_event = threading.Event()
         self.drive = CiA402Drive(self.host_bus, cfg, on_fault=self._on_fault)
@@ -120,8 +132,11 @@ def make_rig():
     for rig in rigs:
         rig.close()
     time.sleep(0.05)
-    left = [t.name for t in threading.enumerate()
-            if t.name.startswith(("CiA402Drive", "SimulatedDrive"))]
+    left = [
+        t.name
+        for t in threading.enumerate()
+        if t.name.startswith(("CiA402Drive", "SimulatedDrive"))
+    ]
     assert left == [], f"threads left running: {left}"
 
 
@@ -415,8 +430,12 @@ def test_column_torque_sensor_zero(make_rig):
 def test_cycle_time_over_the_virtual_bus(make_rig, capsys):
     """Measures (does not assert) set_torque + sync + read at the simulated rig's settings."""
     sim_cfg = load_drive_config(ROOT / "hardware" / "rigs" / "simulated.toml")
-    rig = make_rig(SpringDamperWheel(0.001), loop_rate_hz=sim_cfg.loop_rate_hz,
-                   tpdo_timeout_ms=sim_cfg.tpdo_timeout_ms, max_missed_tpdo=10_000)
+    rig = make_rig(
+        SpringDamperWheel(0.001),
+        loop_rate_hz=sim_cfg.loop_rate_hz,
+        tpdo_timeout_ms=sim_cfg.tpdo_timeout_ms,
+        max_missed_tpdo=10_000,
+    )
     drive = rig.drive
     drive.enable()
     for _ in range(200):  # warm up
@@ -436,10 +455,12 @@ def test_cycle_time_over_the_virtual_bus(make_rig, capsys):
         syncs.append(t2 - t1)
     totals.sort()
     ms = [x * 1e3 for x in totals]
-    line = (f"\ncycle (set_torque+sync+read) over virtual bus, {n} cycles back to back: "
-            f"median {statistics.median(ms):.3f} ms, p90 {ms[int(0.9 * n)]:.3f} ms, "
-            f"p99 {ms[int(0.99 * n)]:.3f} ms, max {ms[-1]:.3f} ms; "
-            f"sync median {statistics.median(syncs) * 1e3:.3f} ms; "
-            f"missed TPDO {drive.missed_tpdo - 0} of {drive.cycle_count}")
+    line = (
+        f"\ncycle (set_torque+sync+read) over virtual bus, {n} cycles back to back: "
+        f"median {statistics.median(ms):.3f} ms, p90 {ms[int(0.9 * n)]:.3f} ms, "
+        f"p99 {ms[int(0.99 * n)]:.3f} ms, max {ms[-1]:.3f} ms; "
+        f"sync median {statistics.median(syncs) * 1e3:.3f} ms; "
+        f"missed TPDO {drive.missed_tpdo - 0} of {drive.cycle_count}"
+    )
     with capsys.disabled():
         print(line)

@@ -35,11 +35,19 @@ class ScriptedPlant:
 def config(channel: str) -> DriveConfig:
     # sign −1 and gear 2 so every conversion below has to get both right
     return DriveConfig(
-        node_id=NODE, interface="virtual", channel=channel, bitrate=1_000_000,
-        encoder_counts_per_rev=4096, rated_torque_nm=10.0, gear_ratio=2.0, sign=-1,
-        safety=SafetyConfig(max_torque_nm=8.0, max_slew_nm_per_s=100.0,
-                            soft_angle_limit_deg=360.0),
-        heartbeat_ms=50, heartbeat_timeout_ms=150, loop_rate_hz=20.0, tpdo_timeout_ms=45.0,
+        node_id=NODE,
+        interface="virtual",
+        channel=channel,
+        bitrate=1_000_000,
+        encoder_counts_per_rev=4096,
+        rated_torque_nm=10.0,
+        gear_ratio=2.0,
+        sign=-1,
+        safety=SafetyConfig(max_torque_nm=8.0, max_slew_nm_per_s=100.0, soft_angle_limit_deg=360.0),
+        heartbeat_ms=50,
+        heartbeat_timeout_ms=150,
+        loop_rate_hz=20.0,
+        tpdo_timeout_ms=45.0,
     )
 
 
@@ -47,8 +55,9 @@ def config(channel: str) -> DriveConfig:
 def rig():
     channel = f"exchange-{uuid.uuid4()}"
     cfg = config(channel)
-    buses = [can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-             for _ in range(3)]
+    buses = [
+        can.Bus(interface="virtual", channel=channel, receive_own_messages=False) for _ in range(3)
+    ]
     host_bus, drive_bus, monitor = buses
     plant = ScriptedPlant()
     sim = SimulatedDrive(drive_bus, cfg, plant)
@@ -76,8 +85,10 @@ def f(cob_id: int, data: str) -> tuple[int, str]:
 def sdo_write(index_lo_hi: str, sub: str, cmd_and_value: tuple[str, str]) -> list:
     """Expedited download request (0x605) and its confirmation (0x585)."""
     cmd, value = cmd_and_value
-    return [f(0x605, f"{cmd} {index_lo_hi} {sub} {value}"),
-            f(0x585, f"60 {index_lo_hi} {sub} 00 00 00 00")]
+    return [
+        f(0x605, f"{cmd} {index_lo_hi} {sub} {value}"),
+        f(0x585, f"60 {index_lo_hi} {sub} 00 00 00 00"),
+    ]
 
 
 def sdo_read(index_lo_hi: str, sub: str, answer: str) -> list:
@@ -203,8 +214,9 @@ def test_fault_reset_controlword_sequence(rig):
     sim.inject_fault(0x4310, error_register=0x08)
     drive.enable()
     frames = drain(monitor)
-    controlwords = [data[12:17] for cob, data in frames
-                    if cob == 0x605 and data.startswith("2b 40 60 00")]
+    controlwords = [
+        data[12:17] for cob, data in frames if cob == 0x605 and data.startswith("2b 40 60 00")
+    ]
     # bit 7 low first so the reset sees a rising edge; then the normal sequence
     assert controlwords == ["00 00", "80 00", "06 00", "07 00", "0f 00"]
     assert f(0x085, "10 43 09 00 00 00 00 00") in frames[:2]  # the EMCY itself

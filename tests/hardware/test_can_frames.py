@@ -32,9 +32,16 @@ payloads = st.binary(min_size=0, max_size=8)
 
 def config(**changes) -> DriveConfig:
     cfg = DriveConfig(
-        node_id=4, interface="virtual", channel="frames", bitrate=1_000_000,
-        encoder_counts_per_rev=131072, rated_torque_nm=10.0, gear_ratio=1.0, sign=1,
-        safety=SafetyConfig(8.0, 100.0, 360.0))
+        node_id=4,
+        interface="virtual",
+        channel="frames",
+        bitrate=1_000_000,
+        encoder_counts_per_rev=131072,
+        rated_torque_nm=10.0,
+        gear_ratio=1.0,
+        sign=1,
+        safety=SafetyConfig(8.0, 100.0, 360.0),
+    )
     return replace(cfg, **changes)
 
 
@@ -61,30 +68,36 @@ def test_emcy_layout():
     assert emcy_payload(0x2310, 0x03, b"\x01") == bytes.fromhex("10 23 03 01 00 00 00 00")
 
 
-@pytest.mark.parametrize(("code", "text"), [
-    (0x2310, "continuous over-current"),
-    (0x2311, "continuous over-current (0x2311)"),  # exact entry absent: nearest group
-    (0x4399, "drive temperature (0x4399)"),
-    (0x3FFF, "voltage (0x3FFF)"),
-    (0xFF42, "device specific (0xFF42)"),
-    (0xE000, "unknown error code 0xE000"),
-])
+@pytest.mark.parametrize(
+    ("code", "text"),
+    [
+        (0x2310, "continuous over-current"),
+        (0x2311, "continuous over-current (0x2311)"),  # exact entry absent: nearest group
+        (0x4399, "drive temperature (0x4399)"),
+        (0x3FFF, "voltage (0x3FFF)"),
+        (0xFF42, "device specific (0xFF42)"),
+        (0xE000, "unknown error code 0xE000"),
+    ],
+)
 def test_emcy_text(code, text):
     assert emcy_text(code) == text
 
 
-@pytest.mark.parametrize(("statusword", "state"), [
-    (0x0000, State402.NOT_READY_TO_SWITCH_ON),
-    (0x0250, State402.SWITCH_ON_DISABLED),  # bit 4 (voltage) does not matter here
-    (0x0221, State402.READY_TO_SWITCH_ON),
-    (0x0233, State402.SWITCHED_ON),
-    (0x1637, State402.OPERATION_ENABLED),  # mode-specific and remote bits ignored
-    (0x0207, State402.QUICK_STOP_ACTIVE),
-    (0x021F, State402.FAULT_REACTION_ACTIVE),
-    (0x0208, State402.FAULT),
-    (0x0228, State402.FAULT),
-    (0x0001, State402.UNKNOWN),
-])
+@pytest.mark.parametrize(
+    ("statusword", "state"),
+    [
+        (0x0000, State402.NOT_READY_TO_SWITCH_ON),
+        (0x0250, State402.SWITCH_ON_DISABLED),  # bit 4 (voltage) does not matter here
+        (0x0221, State402.READY_TO_SWITCH_ON),
+        (0x0233, State402.SWITCHED_ON),
+        (0x1637, State402.OPERATION_ENABLED),  # mode-specific and remote bits ignored
+        (0x0207, State402.QUICK_STOP_ACTIVE),
+        (0x021F, State402.FAULT_REACTION_ACTIVE),
+        (0x0208, State402.FAULT),
+        (0x0228, State402.FAULT),
+        (0x0001, State402.UNKNOWN),
+    ],
+)
 def test_statusword_decoding(statusword, state):
     assert decode_statusword(statusword) is state
 
@@ -107,8 +120,13 @@ def test_pdo_layouts():
 @settings(max_examples=300, deadline=None)
 @given(payloads)
 def test_fuzz_parsers_raise_only_frame_error(data):
-    for parse in (parse_heartbeat, parse_emcy, TPDO1.decode, tpdo2_layout(None).decode,
-                  RPDO1.decode):
+    for parse in (
+        parse_heartbeat,
+        parse_emcy,
+        TPDO1.decode,
+        tpdo2_layout(None).decode,
+        RPDO1.decode,
+    ):
         try:
             parse(data)
         except FrameError:
@@ -127,9 +145,10 @@ def idle_drive():
 
 
 @settings(max_examples=400, deadline=None)
-@given(cob_id=st.one_of(st.sampled_from([0x084, 0x184, 0x284, 0x584, 0x704]),
-                        st.integers(0, 0x7FF)),
-       data=payloads)
+@given(
+    cob_id=st.one_of(st.sampled_from([0x084, 0x184, 0x284, 0x584, 0x704]), st.integers(0, 0x7FF)),
+    data=payloads,
+)
 def test_fuzz_driver_dispatch_never_raises(idle_drive, cob_id, data):
     """Whatever arrives, the receive thread's handler records it and carries on."""
     msg = can.Message(arbitration_id=cob_id, data=data, is_extended_id=False)
@@ -140,8 +159,9 @@ def test_fuzz_driver_dispatch_never_raises(idle_drive, cob_id, data):
 def test_malformed_frames_are_protocol_faults(idle_drive):
     idle_drive._on_frame(can.Message(arbitration_id=0x184, data=b"\x01\x02", is_extended_id=False))
     assert any(f.kind == "protocol" and "0x184" in f.message for f in idle_drive.faults)
-    idle_drive._on_frame(can.Message(arbitration_id=0x084, data=bytes.fromhex("10 23 01"),
-                                     is_extended_id=False))
+    idle_drive._on_frame(
+        can.Message(arbitration_id=0x084, data=bytes.fromhex("10 23 01"), is_extended_id=False)
+    )
     assert any(f.kind == "emcy" and f.code == 0x2310 for f in idle_drive.faults)
 
 
@@ -159,27 +179,41 @@ configs = st.builds(
 
 
 @settings(max_examples=200, deadline=None)
-@given(cfg=configs, angle=st.floats(-20.0, 20.0), velocity=st.floats(-50.0, 50.0),
-       fraction=st.floats(-3.0, 3.0))
+@given(
+    cfg=configs,
+    angle=st.floats(-20.0, 20.0),
+    velocity=st.floats(-50.0, 50.0),
+    fraction=st.floats(-3.0, 3.0),
+)
 def test_scaling_round_trips_within_half_a_unit(cfg, angle, velocity, fraction):
     s = DriveScaling(cfg)
     counts_per_rad = cfg.encoder_counts_per_rev * cfg.gear_ratio / (2 * math.pi)
     assert s.counts_to_angle(s.angle_to_counts(angle)) == pytest.approx(
-        angle, abs=0.5 / counts_per_rad + 1e-12)
+        angle, abs=0.5 / counts_per_rad + 1e-12
+    )
     if cfg.velocity_unit == "rpm":
         unit = 2 * math.pi / 60 / cfg.gear_ratio  # rad/s of the wheel per motor rpm
     else:
         unit = 1 / counts_per_rad
     assert s.velocity_to_rad_s(s.rad_s_to_velocity(velocity)) == pytest.approx(
-        velocity, abs=0.5 * unit + 1e-12)
+        velocity, abs=0.5 * unit + 1e-12
+    )
     torque = fraction * cfg.rated_torque_nm * cfg.gear_ratio  # within ±3× rated
     assert s.permille_to_torque(s.torque_to_permille(torque)) == pytest.approx(
-        torque, abs=0.5 * s.torque_resolution_nm + 1e-12)
+        torque, abs=0.5 * s.torque_resolution_nm + 1e-12
+    )
 
 
 def test_scaling_signs_and_gear_by_hand():
-    s = DriveScaling(config(encoder_counts_per_rev=1000, gear_ratio=4.0, sign=-1,
-                            rated_torque_nm=2.0, velocity_unit="rpm"))
+    s = DriveScaling(
+        config(
+            encoder_counts_per_rev=1000,
+            gear_ratio=4.0,
+            sign=-1,
+            rated_torque_nm=2.0,
+            velocity_unit="rpm",
+        )
+    )
     # one wheel turn = 4 motor turns = 4000 counts, negative because sign = −1
     assert s.angle_to_counts(2 * math.pi) == -4000
     # 60 motor rpm = 1 motor rev/s = 1/4 wheel rev/s, negated
@@ -192,8 +226,9 @@ def test_scaling_signs_and_gear_by_hand():
 
 def test_sensor_scaling():
     cfg = config()
-    cfg = replace(cfg, torque_sensor=replace(cfg.torque_sensor, bits=16, sign=-1,
-                                             nm_per_count=0.01))
+    cfg = replace(
+        cfg, torque_sensor=replace(cfg.torque_sensor, bits=16, sign=-1, nm_per_count=0.01)
+    )
     s = DriveScaling(cfg)
     assert s.torque_to_sensor(1.5) == -150
     assert s.sensor_to_torque(-150) == pytest.approx(1.5)

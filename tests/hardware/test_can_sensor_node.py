@@ -46,19 +46,29 @@ DRIVE = 5
 SENSOR = 0x12  # node 18: its frame is 0x192, its heartbeat 0x712
 
 # 16 bits at byte 2, 0.01 N·m per count, sign −1: every frame below has to get all three right
-NODE_SENSOR = TorqueSensorConfig(source="node", node_id=SENSOR, bits=16, byte_offset=2,
-                                 nm_per_count=0.01, sign=-1)
+NODE_SENSOR = TorqueSensorConfig(
+    source="node", node_id=SENSOR, bits=16, byte_offset=2, nm_per_count=0.01, sign=-1
+)
 
 
 def config(channel: str, sensor: TorqueSensorConfig = NODE_SENSOR, **changes) -> DriveConfig:
     cfg = DriveConfig(
-        node_id=DRIVE, interface="virtual", channel=channel, bitrate=1_000_000,
-        encoder_counts_per_rev=4096, rated_torque_nm=10.0, gear_ratio=2.0, sign=-1,
-        safety=SafetyConfig(max_torque_nm=8.0, max_slew_nm_per_s=100.0,
-                            soft_angle_limit_deg=360.0),
+        node_id=DRIVE,
+        interface="virtual",
+        channel=channel,
+        bitrate=1_000_000,
+        encoder_counts_per_rev=4096,
+        rated_torque_nm=10.0,
+        gear_ratio=2.0,
+        sign=-1,
+        safety=SafetyConfig(max_torque_nm=8.0, max_slew_nm_per_s=100.0, soft_angle_limit_deg=360.0),
         # generous timeouts: these tests check behaviour, not timing, on a busy machine
-        heartbeat_ms=50, heartbeat_timeout_ms=150, loop_rate_hz=20.0, tpdo_timeout_ms=45.0,
-        state_timeout_s=0.2, torque_sensor=sensor,
+        heartbeat_ms=50,
+        heartbeat_timeout_ms=150,
+        loop_rate_hz=20.0,
+        tpdo_timeout_ms=45.0,
+        state_timeout_s=0.2,
+        torque_sensor=sensor,
     )
     return replace(cfg, **changes)
 
@@ -93,18 +103,30 @@ class RampPlant:
 
 
 class Rig:
-    def __init__(self, cfg: DriveConfig, plant, *, with_drive_node: bool, with_sensor_node: bool,
-                 sensor_kwargs: dict):
+    def __init__(
+        self,
+        cfg: DriveConfig,
+        plant,
+        *,
+        with_drive_node: bool,
+        with_sensor_node: bool,
+        sensor_kwargs: dict,
+    ):
         self.cfg = cfg
-        bus = [can.Bus(interface="virtual", channel=cfg.channel, receive_own_messages=False)
-               for _ in range(4)]
+        bus = [
+            can.Bus(interface="virtual", channel=cfg.channel, receive_own_messages=False)
+            for _ in range(4)
+        ]
         self.buses = bus
         self.host_bus, drive_bus, sensor_bus, self.monitor = bus
         self.plant = plant
         self.shared = SharedPlant(plant)
         self.sim = SimulatedDrive(drive_bus, cfg, self.shared) if with_drive_node else None
-        self.sensor = SimulatedTorqueSensor(sensor_bus, cfg, self.shared, **sensor_kwargs) \
-            if with_sensor_node else None
+        self.sensor = (
+            SimulatedTorqueSensor(sensor_bus, cfg, self.shared, **sensor_kwargs)
+            if with_sensor_node
+            else None
+        )
         self.drive = CiA402Drive(self.host_bus, cfg)
         drain(self.monitor)  # boot-up messages
 
@@ -123,13 +145,23 @@ class Rig:
 def make_rig():
     rigs: list[Rig] = []
 
-    def make(plant=None, *, with_drive_node: bool = True, with_sensor_node: bool = True,
-             sensor_kwargs: dict | None = None, sensor: TorqueSensorConfig = NODE_SENSOR,
-             **changes) -> Rig:
+    def make(
+        plant=None,
+        *,
+        with_drive_node: bool = True,
+        with_sensor_node: bool = True,
+        sensor_kwargs: dict | None = None,
+        sensor: TorqueSensorConfig = NODE_SENSOR,
+        **changes,
+    ) -> Rig:
         cfg = config(f"sensor-node-{uuid.uuid4()}", sensor, **changes)
-        rig = Rig(cfg, plant if plant is not None else ScriptedPlant(),
-                  with_drive_node=with_drive_node, with_sensor_node=with_sensor_node,
-                  sensor_kwargs=sensor_kwargs or {})
+        rig = Rig(
+            cfg,
+            plant if plant is not None else ScriptedPlant(),
+            with_drive_node=with_drive_node,
+            with_sensor_node=with_sensor_node,
+            sensor_kwargs=sensor_kwargs or {},
+        )
         rigs.append(rig)
         return rig
 
@@ -137,8 +169,11 @@ def make_rig():
     for rig in rigs:
         rig.close()
     time.sleep(0.05)
-    left = [t.name for t in threading.enumerate()
-            if t.name.startswith(("CiA402Drive", "SimulatedDrive", "SimulatedTorqueSensor"))]
+    left = [
+        t.name
+        for t in threading.enumerate()
+        if t.name.startswith(("CiA402Drive", "SimulatedDrive", "SimulatedTorqueSensor"))
+    ]
     assert left == [], f"threads left running: {left}"
 
 
@@ -199,8 +234,10 @@ def test_sensor_frame_errors():
 def sdo_write(index_lo_hi: str, sub: str, cmd_and_value: tuple[str, str]) -> list:
     """Expedited download request (0x605) and its confirmation (0x585)."""
     cmd, value = cmd_and_value
-    return [f(0x605, f"{cmd} {index_lo_hi} {sub} {value}"),
-            f(0x585, f"60 {index_lo_hi} {sub} 00 00 00 00")]
+    return [
+        f(0x605, f"{cmd} {index_lo_hi} {sub} {value}"),
+        f(0x585, f"60 {index_lo_hi} {sub} 00 00 00 00"),
+    ]
 
 
 def sdo_read(index_lo_hi: str, sub: str, answer: str) -> list:
@@ -284,12 +321,14 @@ def test_one_control_cycle_exchange(make_rig):
         f(0x080, ""),  # SYNC
     ]
     # The drive and the sensor node answer the SYNC independently: in either order.
-    assert sorted(frames[2:]) == sorted([
-        f(0x185, "37 02 00 f8 ff ff 6a ff"),  # statusword, −2048 counts, −150 ‰
-        f(0x285, "18 05 00 00"),  # velocity 1304 counts/s; no column torque in TPDO2
-        # column 1.5 N·m / (0.01 N·m × sign −1) = −150 = 0xFF6A, at byte 2
-        f(0x192, "00 00 6a ff"),
-    ])
+    assert sorted(frames[2:]) == sorted(
+        [
+            f(0x185, "37 02 00 f8 ff ff 6a ff"),  # statusword, −2048 counts, −150 ‰
+            f(0x285, "18 05 00 00"),  # velocity 1304 counts/s; no column torque in TPDO2
+            # column 1.5 N·m / (0.01 N·m × sign −1) = −150 = 0xFF6A, at byte 2
+            f(0x192, "00 00 6a ff"),
+        ]
+    )
     assert drive.column_torque_nm() == pytest.approx(1.5)
     assert drive.torque_sensor.read() == pytest.approx(1.5)
     assert drive.read().torque_actual_nm == pytest.approx(3.0)
@@ -301,16 +340,39 @@ def test_one_control_cycle_exchange(make_rig):
     ("sensor", "column_nm", "cob_id", "frame", "read_nm"),
     [
         # 32 bit at byte 0, sign +1, 1 mN·m: 1500 = 0x05DC
-        (TorqueSensorConfig("node", node_id=SENSOR, bits=32, nm_per_count=0.001),
-         1.5, 0x192, "dc 05 00 00", 1.5),
+        (
+            TorqueSensorConfig("node", node_id=SENSOR, bits=32, nm_per_count=0.001),
+            1.5,
+            0x192,
+            "dc 05 00 00",
+            1.5,
+        ),
         # own COB-ID, 32 bit at byte 4, sign −1, 0.5 mN·m: −2 N·m → +4000 = 0x0FA0
-        (TorqueSensorConfig("node", node_id=SENSOR, cob_id=0x3A0, bits=32, byte_offset=4,
-                            nm_per_count=0.0005, sign=-1),
-         -2.0, 0x3A0, "00 00 00 00 a0 0f 00 00", -2.0),
+        (
+            TorqueSensorConfig(
+                "node",
+                node_id=SENSOR,
+                cob_id=0x3A0,
+                bits=32,
+                byte_offset=4,
+                nm_per_count=0.0005,
+                sign=-1,
+            ),
+            -2.0,
+            0x3A0,
+            "00 00 00 00 a0 0f 00 00",
+            -2.0,
+        ),
         # 16 bit at byte 6, 1 mN·m: 40 N·m saturates at 32767 = 0x7FFF (the amplifier's range)
-        (TorqueSensorConfig("node", node_id=SENSOR, cob_id=0x1F0, bits=16, byte_offset=6,
-                            nm_per_count=0.001),
-         40.0, 0x1F0, "00 00 00 00 00 00 ff 7f", 32.767),
+        (
+            TorqueSensorConfig(
+                "node", node_id=SENSOR, cob_id=0x1F0, bits=16, byte_offset=6, nm_per_count=0.001
+            ),
+            40.0,
+            0x1F0,
+            "00 00 00 00 00 00 ff 7f",
+            32.767,
+        ),
         # sign −1 the other way: −0.25 N·m / (−0.01) = +25 = 0x0019
         (NODE_SENSOR, -0.25, 0x192, "00 00 19 00", -0.25),
     ],
@@ -425,9 +487,11 @@ def test_watched_heartbeat_loss_is_a_sensor_fault(make_rig):
 
 def test_watched_sensor_missing_fails_enable(make_rig):
     rig = make_rig(with_sensor_node=False, sensor=WATCHED)
-    with pytest.raises(DriveEnableError,
-                       match=r"torque sensor node 18: no heartbeat with NMT state OPERATIONAL "
-                             r"within 100 ms after NMT start \(last heartbeat state: none\)"):
+    with pytest.raises(
+        DriveEnableError,
+        match=r"torque sensor node 18: no heartbeat with NMT state OPERATIONAL "
+        r"within 100 ms after NMT start \(last heartbeat state: none\)",
+    ):
         rig.drive.enable()
     assert rig.sim.state is State402.SWITCH_ON_DISABLED  # disabled again
     assert not rig.drive.enabled
@@ -436,8 +500,7 @@ def test_watched_sensor_missing_fails_enable(make_rig):
 def test_watched_sensor_reboot_is_a_fault(make_rig):
     rig = make_rig(sensor=WATCHED)
     rig.drive.enable()
-    rig.host_bus.send(can.Message(arbitration_id=0x000, data=[0x81, SENSOR],
-                                  is_extended_id=False))
+    rig.host_bus.send(can.Message(arbitration_id=0x000, data=[0x81, SENSOR], is_extended_id=False))
     assert wait_for(lambda: any(f.kind == "sensor" for f in rig.drive.active_faults))
     assert rig.drive.active_faults[0].message == "torque sensor node 18 rebooted (boot-up message)"
     assert rig.sensor.nmt_state == NmtState.PRE_OPERATIONAL
@@ -547,40 +610,98 @@ def test_good_node_config(tmp_path):
         ("node_id = 9", "node_id = 0", "drive.torque_sensor", "node_id", "1..127"),
         ("node_id = 9", "node_id = 128", "drive.torque_sensor", "node_id", "1..127"),
         ("node_id = 9", 'node_id = "9"', "drive.torque_sensor", "node_id", "expected an integer"),
-        ("node_id = 9", "node_id = 3", "drive.torque_sensor", "node_id",
-         "must differ from the drive's [drive] node_id 3"),
-        ("node_id = 9", "node_id = 9\ncob_id = 0x800", "drive.torque_sensor", "cob_id",
-         "1..2047"),
+        (
+            "node_id = 9",
+            "node_id = 3",
+            "drive.torque_sensor",
+            "node_id",
+            "must differ from the drive's [drive] node_id 3",
+        ),
+        ("node_id = 9", "node_id = 9\ncob_id = 0x800", "drive.torque_sensor", "cob_id", "1..2047"),
         ("node_id = 9", "node_id = 9\ncob_id = 0", "drive.torque_sensor", "cob_id", "1..2047"),
-        ("node_id = 9", "node_id = 9\ncob_id = 0x183", "drive.torque_sensor", "cob_id",
-         "0x183 is already used by the drive's TPDO1"),
-        ("node_id = 9", "node_id = 9\ncob_id = 0x80", "drive.torque_sensor", "cob_id",
-         "0x080 is already used by SYNC"),
-        ("node_id = 9", "node_id = 9\ncob_id = 0x603", "drive.torque_sensor", "cob_id",
-         "the drive's SDO request"),
-        ("node_id = 9", "node_id = 9\ncob_id = 0x709", "drive.torque_sensor", "cob_id",
-         "the sensor's own heartbeat"),
-        ("byte_offset = 2", "byte_offset = 7", "drive.torque_sensor", "byte_offset",
-         "a 16-bit value at byte_offset 7 does not fit in an 8-byte CAN frame "
-         "(byte_offset must be 0..6)"),
-        ("bits = 16\nbyte_offset = 2", "bits = 32\nbyte_offset = 5", "drive.torque_sensor",
-         "byte_offset", "(byte_offset must be 0..4)"),
-        ("byte_offset = 2", "byte_offset = -1", "drive.torque_sensor", "byte_offset",
-         "does not fit"),
-        ("byte_offset = 2", "byte_offset = 2.0", "drive.torque_sensor", "byte_offset",
-         "expected an integer"),
+        (
+            "node_id = 9",
+            "node_id = 9\ncob_id = 0x183",
+            "drive.torque_sensor",
+            "cob_id",
+            "0x183 is already used by the drive's TPDO1",
+        ),
+        (
+            "node_id = 9",
+            "node_id = 9\ncob_id = 0x80",
+            "drive.torque_sensor",
+            "cob_id",
+            "0x080 is already used by SYNC",
+        ),
+        (
+            "node_id = 9",
+            "node_id = 9\ncob_id = 0x603",
+            "drive.torque_sensor",
+            "cob_id",
+            "the drive's SDO request",
+        ),
+        (
+            "node_id = 9",
+            "node_id = 9\ncob_id = 0x709",
+            "drive.torque_sensor",
+            "cob_id",
+            "the sensor's own heartbeat",
+        ),
+        (
+            "byte_offset = 2",
+            "byte_offset = 7",
+            "drive.torque_sensor",
+            "byte_offset",
+            "a 16-bit value at byte_offset 7 does not fit in an 8-byte CAN frame "
+            "(byte_offset must be 0..6)",
+        ),
+        (
+            "bits = 16\nbyte_offset = 2",
+            "bits = 32\nbyte_offset = 5",
+            "drive.torque_sensor",
+            "byte_offset",
+            "(byte_offset must be 0..4)",
+        ),
+        (
+            "byte_offset = 2",
+            "byte_offset = -1",
+            "drive.torque_sensor",
+            "byte_offset",
+            "does not fit",
+        ),
+        (
+            "byte_offset = 2",
+            "byte_offset = 2.0",
+            "drive.torque_sensor",
+            "byte_offset",
+            "expected an integer",
+        ),
         ("bits = 16", "bits = 8", "drive.torque_sensor", "bits", "expected one of 16, 32"),
-        ("heartbeat_timeout_ms = 300", "heartbeat_timeout_ms = -1", "drive.torque_sensor",
-         "heartbeat_timeout_ms", "≥ 0"),
-        ("heartbeat_timeout_ms = 300", "heartbeat_timeout = 300", "drive.torque_sensor",
-         "heartbeat_timeout", "unknown field"),
+        (
+            "heartbeat_timeout_ms = 300",
+            "heartbeat_timeout_ms = -1",
+            "drive.torque_sensor",
+            "heartbeat_timeout_ms",
+            "≥ 0",
+        ),
+        (
+            "heartbeat_timeout_ms = 300",
+            "heartbeat_timeout = 300",
+            "drive.torque_sensor",
+            "heartbeat_timeout",
+            "unknown field",
+        ),
         # 1.2 kHz at 800 kbit/s carries the drive's cycle (63 %) but not the sensor frame too
-        ("bitrate = 1_000_000", "bitrate = 800_000\nloop_rate_hz = 1200", "drive", "bitrate",
-         "cannot carry one control cycle (~555 bits)"),
+        (
+            "bitrate = 1_000_000",
+            "bitrate = 800_000\nloop_rate_hz = 1200",
+            "drive",
+            "bitrate",
+            "cannot carry one control cycle (~555 bits)",
+        ),
     ],
 )
-def test_node_config_errors_name_file_section_field(tmp_path, old, new, section, field,
-                                                    expected):
+def test_node_config_errors_name_file_section_field(tmp_path, old, new, section, field, expected):
     path = write(tmp_path, edit(GOOD_NODE, old, new))
     with pytest.raises(ConfigError) as info:
         load_drive_config(path)
@@ -606,13 +727,16 @@ def test_fuzz_sensor_frame_decode_raises_only_frame_error(layout, data):
     except FrameError:
         assert len(data) < offset + bits // 8
         return
-    assert raw == int.from_bytes(data[offset:offset + bits // 8], "little", signed=True)
+    assert raw == int.from_bytes(data[offset : offset + bits // 8], "little", signed=True)
     assert -(1 << (bits - 1)) <= raw < 1 << (bits - 1)
 
 
 @settings(max_examples=200, deadline=None)
-@given(offset=st.integers(-3, 10), bits=st.sampled_from([0, 8, 16, 24, 32, 64]),
-       raw=st.integers(-(1 << 40), 1 << 40))
+@given(
+    offset=st.integers(-3, 10),
+    bits=st.sampled_from([0, 8, 16, 24, 32, 64]),
+    raw=st.integers(-(1 << 40), 1 << 40),
+)
 def test_fuzz_sensor_frame_layouts_and_values(offset, bits, raw):
     try:
         frame = SensorFrame(offset, bits)

@@ -30,9 +30,17 @@ class StillPlant:
 
 
 def make_config(channel: str) -> DriveConfig:
-    return DriveConfig(node_id=NODE, interface="virtual", channel=channel, bitrate=1_000_000,
-                       encoder_counts_per_rev=4096, rated_torque_nm=5.0, gear_ratio=1.0, sign=1,
-                       safety=SafetyConfig(4.0, 100.0, 360.0))
+    return DriveConfig(
+        node_id=NODE,
+        interface="virtual",
+        channel=channel,
+        bitrate=1_000_000,
+        encoder_counts_per_rev=4096,
+        rated_torque_nm=5.0,
+        gear_ratio=1.0,
+        sign=1,
+        safety=SafetyConfig(4.0, 100.0, 360.0),
+    )
 
 
 @pytest.fixture
@@ -174,8 +182,10 @@ def fuzz_sim():
 
 
 @settings(max_examples=400, deadline=None)
-@given(cob_id=st.one_of(st.sampled_from([0x000, 0x080, 0x209, 0x609]), st.integers(0, 0x7FF)),
-       data=st.binary(max_size=8))
+@given(
+    cob_id=st.one_of(st.sampled_from([0x000, 0x080, 0x209, 0x609]), st.integers(0, 0x7FF)),
+    data=st.binary(max_size=8),
+)
 def test_fuzz_simulated_node_ignores_garbage(fuzz_sim, cob_id, data):
     fuzz_sim._on_frame(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
     assert fuzz_sim.errors == []
