@@ -1074,8 +1074,10 @@ def analyse_directory(
     jobs: int = 1,
     progress: ProgressCallback | None = None,
     options: AnalysisOptions | None = None,
+    stage: Callable[[str], None] | None = None,
 ) -> tuple[StudyResults, list[TrialRecord]]:
-    """Read ``session_dir`` and analyse it; the records come back for plotting time signals."""
+    """Read ``session_dir`` and analyse it (:func:`run_analysis`, ``stage`` as there); the
+    records come back for plotting time signals. ``timings_s`` starts with ``read_files``."""
     opt = options or AnalysisOptions()
     t0 = time.perf_counter()
     records, inputs = load_directory(session_dir, progress)
@@ -1087,6 +1089,7 @@ def analyse_directory(
         progress=progress,
         options=opt,
         provenance_info=provenance(session_dir, inputs, opt),
+        stage=stage,
     )
     res.timings_s = {"read_files": t_read, **res.timings_s}
     return res, records

@@ -38,10 +38,8 @@ from analysis.pipeline import (
     PARAMETER_UNITS,
     STAT_QUANTITIES,
     StudyResults,
+    analyse_directory,
     json_clean,
-    load_directory,
-    provenance,
-    run_analysis,
 )
 from analysis.study import AnalysisOptions, ProgressCallback
 from protocols.records import TrialRecord
@@ -118,30 +116,16 @@ def write_report(
     """
     out = Path(out_dir)
     _check_out_dir(out)  # before the analysis: a wrong --out should not cost a minute
-    opt = options or AnalysisOptions()
-    timings: dict[str, float] = {}
     t_all = time.perf_counter()
-
-    t0 = time.perf_counter()
-    records, inputs = load_directory(session_dir, progress)
-    timings["read_files"] = time.perf_counter() - t0
-
     n_fig = len(FIGURES) if figures else 0
     stages = ["LPV model", "statistics", RESULTS_JSON, PER_SUBJECT_CSV]
     stages += [f"figure {name}" for name in FIGURES[:n_fig]] + [INDEX_HTML]
     step = _Stages(stages, progress)
 
-    res = run_analysis(
-        records,
-        executor=executor,
-        jobs=jobs,
-        progress=progress,
-        options=opt,
-        provenance_info=provenance(session_dir, inputs, opt),
-        stage=step,
+    res, records = analyse_directory(
+        session_dir, executor=executor, jobs=jobs, progress=progress, options=options, stage=step
     )
-    timings.update(res.timings_s)
-    res.timings_s = timings
+    timings = res.timings_s  # read_files, then the analysis's; the report adds its own
     tracking = None
     if any(r.attrs.get("schedule") for r in records):
         # Only studies with time-varying trials get the tracking section (analysis.tracking).
