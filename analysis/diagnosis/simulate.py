@@ -22,15 +22,8 @@ import numpy as np
 from analysis.diagnosis.data import TrialData, measurement_spectra
 from hardware.sim.mechanisms import Mechanisms
 from hardware.sim.physiology import ArmParams, ConditionBehaviour
-from hardware.sim.world import SensorSpec, World, WorldConfig
-
-NOISELESS = SensorSpec(
-    encoder_counts_per_rev=0,
-    velocity_noise_sd=0.0,
-    torque_noise_sd=0.0,
-    torque_resolution=0.0,
-    glove_noise_sd_n=0.0,
-)
+from hardware.sim.world import NOISELESS_SENSORS as NOISELESS
+from hardware.sim.world import World, WorldConfig
 
 
 class ReplayBlocks:

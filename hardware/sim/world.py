@@ -60,6 +60,17 @@ class SensorSpec:
     glove_noise_sd_n: float = 0.8  # N per hand
 
 
+#: Ideal sensors: no quantisation, no noise (the glove still samples at its rate). For checks
+#: against analytic responses and for the diagnosis's noise-free replays.
+NOISELESS_SENSORS = SensorSpec(
+    encoder_counts_per_rev=0,
+    velocity_noise_sd=0.0,
+    torque_noise_sd=0.0,
+    torque_resolution=0.0,
+    glove_noise_sd_n=0.0,
+)
+
+
 @dataclass(frozen=True)
 class WorldConfig:
     fs_hz: float = 1000.0

@@ -19,18 +19,11 @@ from hardware.sim.mechanisms import (
 )
 from hardware.sim.physiology import CONDITIONS, NOMINAL, make_population
 from hardware.sim.rig import simulated_rig
+from hardware.sim.world import NOISELESS_SENSORS as NOISELESS
 from hardware.sim.world import SensorSpec, World, WorldConfig
 from protocols.engine import SessionEngine
 from protocols.events import SamplesAcquired
 from protocols.session import build_plan
-
-NOISELESS = SensorSpec(
-    encoder_counts_per_rev=0,
-    velocity_noise_sd=0.0,
-    torque_noise_sd=0.0,
-    torque_resolution=0.0,
-    glove_noise_sd_n=0.0,
-)
 
 
 def _collect(engine: SessionEngine) -> dict[str, dict[str, np.ndarray]]:

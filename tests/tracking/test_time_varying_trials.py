@@ -11,7 +11,8 @@ import pytest
 from hardware.sim.physiology import NOMINAL, make_population
 from hardware.sim.rig import SimulatedSubject, simulated_rig
 from hardware.sim.schedule import BehaviourSchedule
-from hardware.sim.world import TRUTH_CHANNELS, SensorSpec, World, WorldConfig
+from hardware.sim.world import NOISELESS_SENSORS as NOISELESS
+from hardware.sim.world import TRUTH_CHANNELS, World, WorldConfig
 from protocols.datafile import SessionFile, SessionWriter
 from protocols.engine import LoopControl, SessionEngine
 from protocols.events import SamplesAcquired
@@ -37,13 +38,6 @@ transition_s = 4.0
 segments = [{condition = "RT", duration_s = 8.0}, {condition = "BT5", duration_s = 9.0},
             {condition = "BT12", duration_s = 9.0}]
 """
-NOISELESS = SensorSpec(
-    encoder_counts_per_rev=0,
-    velocity_noise_sd=0.0,
-    torque_noise_sd=0.0,
-    torque_resolution=0.0,
-    glove_noise_sd_n=0.0,
-)
 
 
 def _protocol(extra: str = SWITCH + RAMP, fs: float = 200.0):

@@ -27,6 +27,7 @@ from analysis.tracking.calibration import Disturbance, disturbance_of
 from analysis.tracking.online import OnlineTracker
 from hardware.sim.physiology import NOMINAL
 from hardware.sim.schedule import BehaviourSchedule
+from hardware.sim.world import NOISELESS_SENSORS as QUIET
 from hardware.sim.world import SensorSpec, World, WorldConfig
 from protocols.perturbation import design_multisine
 from protocols.protocol import VirtualWheel
@@ -35,13 +36,6 @@ from protocols.session import ConditionSchedule
 
 FS = 500.0
 LPV_CONDITIONS = ("BT18", "BT12", "BT8", "BT5", "PT")
-QUIET = SensorSpec(
-    encoder_counts_per_rev=0,
-    velocity_noise_sd=0.0,
-    torque_noise_sd=0.0,
-    torque_resolution=0.0,
-    glove_noise_sd_n=0.0,
-)
 
 
 def _points(k_i_factor: float = 1.0) -> list[OperatingPoint]:
