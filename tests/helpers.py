@@ -14,3 +14,16 @@ def fast_protocol_text(loop_rate_hz: float = 200.0, run_in_s: float = 2.0, perio
     text = text.replace("run_in_s = 5.0 ", f"run_in_s = {run_in_s} ")
     text = text.replace("periods = 1 ", f"periods = {periods} ")
     return text
+
+
+def write_rig(tmp_path: Path, text: str) -> Path:
+    """``text`` as ``tmp_path/rig.toml``."""
+    p = tmp_path / "rig.toml"
+    p.write_text(text)
+    return p
+
+
+def edit(text: str, old: str, new: str) -> str:
+    """``text`` with ``old`` replaced; fails if ``old`` is not there (a stale test edit)."""
+    assert old in text, old
+    return text.replace(old, new)

@@ -19,6 +19,7 @@ from hardware.can import (
     load_drive_config,
     open_bus,
 )
+from tests.helpers import edit, write_rig
 
 ROOT = Path(__file__).resolve().parents[2]
 SIMULATED = ROOT / "hardware" / "rigs" / "simulated.toml"
@@ -51,17 +52,6 @@ soft_angle_limit_deg = 360.0
 """
 
 
-def write(tmp_path: Path, text: str) -> Path:
-    p = tmp_path / "rig.toml"
-    p.write_text(text)
-    return p
-
-
-def edit(text: str, old: str, new: str) -> str:
-    assert old in text, old
-    return text.replace(old, new)
-
-
 def test_simulated_rig_file_loads():
     cfg = load_drive_config(SIMULATED)
     assert cfg.interface == "virtual"
@@ -72,7 +62,7 @@ def test_simulated_rig_file_loads():
 
 
 def test_good_file_values_and_defaults(tmp_path):
-    cfg = load_drive_config(write(tmp_path, GOOD))
+    cfg = load_drive_config(write_rig(tmp_path, GOOD))
     assert (cfg.node_id, cfg.interface, cfg.channel, cfg.sign) == (3, "socketcan", "can0", -1)
     assert cfg.torque_sensor == TorqueSensorConfig("pdo", 0x2001, 2, 16, 0.01, 1)
     assert cfg.safety == SafetyConfig(15.0, 300.0, 360.0)
@@ -149,7 +139,7 @@ def test_good_file_values_and_defaults(tmp_path):
     ],
 )
 def test_errors_name_file_section_field(tmp_path, old, new, section, field, expected):
-    path = write(tmp_path, edit(GOOD, old, new))
+    path = write_rig(tmp_path, edit(GOOD, old, new))
     with pytest.raises(ConfigError) as info:
         load_drive_config(path)
     err = info.value
@@ -160,16 +150,16 @@ def test_errors_name_file_section_field(tmp_path, old, new, section, field, expe
 
 
 def test_missing_tables(tmp_path):
-    path = write(tmp_path, GOOD.split("[safety]")[0])
+    path = write_rig(tmp_path, GOOD.split("[safety]")[0])
     with pytest.raises(ConfigError, match=re.escape(f"{path}: [safety]: table is missing")):
         load_drive_config(path)
-    path = write(tmp_path, "[glove]\nport = 1\n")
+    path = write_rig(tmp_path, "[glove]\nport = 1\n")
     with pytest.raises(ConfigError, match=re.escape(f"{path}: [drive]: table is missing")):
         load_drive_config(path)
 
 
 def test_not_toml_and_missing_file(tmp_path):
-    path = write(tmp_path, "[drive\nnode_id = 1")
+    path = write_rig(tmp_path, "[drive\nnode_id = 1")
     with pytest.raises(ConfigError, match="not valid TOML") as info:
         load_drive_config(path)
     assert info.value.file == str(path)
@@ -191,7 +181,7 @@ def test_node_torque_sensor_config_reaches_the_driver(tmp_path):
         'interface = "socketcan"\nchannel = "can0"',
         'interface = "virtual"\nchannel = "cfg-node-sensor"',
     )
-    cfg = load_drive_config(write(tmp_path, text))
+    cfg = load_drive_config(write_rig(tmp_path, text))
     assert {"can_id": 0x189, "can_mask": 0x7FF, "extended": False} in driver_filters(cfg)
     bus = can.Bus(interface="virtual", channel="cfg-node-sensor")
     try:
@@ -207,7 +197,7 @@ def test_open_bus_uses_rig_file_and_filters(tmp_path):
         'interface = "socketcan"\nchannel = "can0"',
         'interface = "virtual"\nchannel = "cfg-open-bus"',
     )
-    cfg = load_drive_config(write(tmp_path, text))
+    cfg = load_drive_config(write_rig(tmp_path, text))
     bus = open_bus(cfg)
     other = can.Bus(interface="virtual", channel="cfg-open-bus")
     try:

@@ -40,6 +40,7 @@ from hardware.can import (
     load_drive_config,
 )
 from hardware.interfaces import TorqueSensor
+from tests.helpers import edit, write_rig
 
 ROOT = Path(__file__).resolve().parents[2]
 DRIVE = 5
@@ -582,19 +583,8 @@ soft_angle_limit_deg = 360.0
 """
 
 
-def write(tmp_path: Path, text: str) -> Path:
-    p = tmp_path / "rig.toml"
-    p.write_text(text)
-    return p
-
-
-def edit(text: str, old: str, new: str) -> str:
-    assert old in text, old
-    return text.replace(old, new)
-
-
 def test_good_node_config(tmp_path):
-    cfg = load_drive_config(write(tmp_path, GOOD_NODE))
+    cfg = load_drive_config(write_rig(tmp_path, GOOD_NODE))
     s = cfg.torque_sensor
     assert (s.source, s.node_id, s.cob_id, s.frame_cob_id) == ("node", 9, None, 0x189)
     assert (s.bits, s.byte_offset, s.heartbeat_timeout_ms) == (16, 2, 300)
@@ -702,7 +692,7 @@ def test_good_node_config(tmp_path):
     ],
 )
 def test_node_config_errors_name_file_section_field(tmp_path, old, new, section, field, expected):
-    path = write(tmp_path, edit(GOOD_NODE, old, new))
+    path = write_rig(tmp_path, edit(GOOD_NODE, old, new))
     with pytest.raises(ConfigError) as info:
         load_drive_config(path)
     err = info.value
@@ -816,7 +806,7 @@ def test_simulated_rig_with_a_sensor_node_runs_a_trial(tmp_path):
     text = edit(text, 'source = "pdo"', 'source = "node"\nnode_id = 2')
     text = edit(text, "index = 0x2000", "# index = 0x2000")
     text = edit(text, "subindex = 0", "# subindex = 0")
-    rig = load_rig(write(tmp_path, text))
+    rig = load_rig(write_rig(tmp_path, text))
     assert (rig.drive.torque_sensor.source, rig.drive.torque_sensor.node_id) == ("node", 2)
     # Behaviour, not timing: a late cycle on a shared machine must not abort this trial.
     rig = replace(rig, safety=replace(rig.safety, loop_stall_s=0.5))
