@@ -102,22 +102,16 @@ class ModelSpec:
 
     def start(self) -> np.ndarray:
         """Free parameters start where ``base`` has them, or at their "switched on" value."""
-        out: list[float] = []
-        for c in self.free:
-            if c.is_on(self.base):
-                out.extend(c.current(self.base, self.fs_ref))
-            else:
-                out.extend(p.start for p in c.params)
-        return np.array(out, dtype=float)
+        return self._as_in_base(lambda c: [p.start for p in c.params])
 
     def off(self) -> np.ndarray:
         """Coordinates of the free mechanisms as ``base`` has them (0 when off)."""
+        return self._as_in_base(lambda c: [0.0] * len(c.params))
+
+    def _as_in_base(self, when_off) -> np.ndarray:
         out: list[float] = []
         for c in self.free:
-            if c.is_on(self.base):
-                out.extend(c.current(self.base, self.fs_ref))
-            else:
-                out.extend(0.0 for _ in c.params)
+            out.extend(c.current(self.base, self.fs_ref) if c.is_on(self.base) else when_off(c))
         return np.array(out, dtype=float)
 
     def clip(self, x: np.ndarray) -> np.ndarray:
