@@ -27,7 +27,7 @@ from pathlib import Path
 from benchmarks.machine import machine, peak_rss_mb
 
 GOAL_FPS = 30.0
-DEFAULT_RIG = "hardware/rigs/simulated.toml"
+DEFAULT_RIG = str(Path(__file__).resolve().parents[1] / "hardware" / "rigs" / "simulated.toml")
 TIMING_KEYS = ("period_error_p50_ms", "period_error_p99_ms", "period_error_max_ms",
                "late_cycles", "cycles")  # fmt: skip
 
@@ -127,7 +127,9 @@ def main(argv: list[str]) -> dict:
     ap = argparse.ArgumentParser(prog="python -m benchmarks gui_live")
     ap.add_argument("--protocol", help="protocol TOML (default: the paper's)")
     ap.add_argument("--gui-only", action="store_true", help="skip the headless run")
-    ap.add_argument("--rig", default=DEFAULT_RIG, help=f"rig file (default: {DEFAULT_RIG})")
+    ap.add_argument(
+        "--rig", default=DEFAULT_RIG, help="rig file (default: hardware/rigs/simulated.toml)"
+    )
     ap.add_argument(
         "--in-process",
         action="store_true",

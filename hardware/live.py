@@ -35,7 +35,7 @@ from hardware.can import (
     open_bus,
 )
 from hardware.glove.unit import SerialGloveUnit
-from hardware.loop import DeviceLoop
+from hardware.loop import DEFAULT_BLOCK_S, DeviceLoop
 from hardware.rig import RigConfig, load_rig
 from protocols.engine import LoopControl, TrialFault
 from protocols.session import TrialSetup
@@ -208,7 +208,7 @@ class RigDevices:
         }
 
     def device_loop(
-        self, *, estop=None, realtime: bool = True, block_s: float = 0.05
+        self, *, estop=None, realtime: bool = True, block_s: float = DEFAULT_BLOCK_S
     ) -> DeviceLoop:
         """The control loop over these devices. Its consumer must keep pulling blocks: the
         loop only cycles while it is asked for samples. The engine therefore drives a real-time
@@ -326,7 +326,7 @@ class ProcessLoop:
         subject_number: int,
         *,
         start_timeout_s: float = 60.0,
-        block_s: float = 0.05,
+        block_s: float = DEFAULT_BLOCK_S,
     ):
         ctx = mp.get_context("spawn")
         self._estop = ctx.Event()

@@ -51,6 +51,7 @@ LOOP_CHANNELS = (
 PAUSE_FADE_S = 0.5
 SPIN_S = 0.25e-3
 LATE_S = 0.5e-3  # a cycle later than this counts as late
+DEFAULT_BLOCK_S = 0.05  # length of the blocks the loop hands its consumer, s (headless)
 
 
 class DeviceLoop:
@@ -62,7 +63,7 @@ class DeviceLoop:
         display: Display | None = None,
         *,
         realtime: bool = False,
-        block_s: float = 0.05,
+        block_s: float = DEFAULT_BLOCK_S,
         trial_hooks: Sequence[Callable[[TrialSetup], None]] = (),
         pre_trial: Callable[[], None] | None = None,
         health: Callable[[], str | None] | None = None,
