@@ -200,7 +200,7 @@ def ekf_update(x, P, cfg, coef, dphi, dq, mem, tp, td, theta, grip, out):
         # shows in the distance from the level before the smoothed rate has risen.
         dev = abs(grip - mem[M_LEVEL]) / max(mem[M_LEVEL], 1.0)
         if dev > cfg[C_DEV] or (rate > cfg[C_RT] and dev > cfg[C_DEV1]):
-            mem[M_NEFF] = min(mem[M_NEFF], cfg[C_NMIN])
+            mem[M_NEFF] = cfg[C_NMIN]  # n never falls below it: this restarts the mean
         else:
             mem[M_NEFF] = min(mem[M_NEFF] + 1.0, cfg[C_NMAX])
         mem[M_LEVEL] += (grip - mem[M_LEVEL]) / mem[M_NEFF]
