@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import replace
 
@@ -154,6 +155,19 @@ def test_ours_tracks_a_step_within_half_a_second(steps):
     # by more than the 15 % band for a moment; that is the LPV model's shape, not a lag.
     assert np.median(settle) < 0.5 and max(settle) < 0.75, sc.steps
     assert sc.rms_log_k_i < 0.1
+
+
+def test_information_benchmark_recovers_a_wrong_stiffness_from_the_response(steps):
+    # benchmarks/tracking_information: the filter told the true arm but k_i 30 % high must
+    # find k_i from the perturbation response alone after each step.
+    from benchmarks.tracking_information import segments
+
+    rows = segments(steps, Calibration.from_points(_points()), 0.0, k_i_offset=math.log(1.3))
+    late = [abs(err) for t, err, _ in rows if t == 4.0]
+    early = [abs(err) for t, err, _ in rows if t == 0.25]
+    assert len(late) == 3
+    assert max(late) < 0.08, rows
+    assert np.mean(early) > np.mean(late)
 
 
 def test_online_tracker_is_the_offline_one_sample_by_sample(steps, tmp_path, capsys):
