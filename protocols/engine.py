@@ -193,8 +193,8 @@ class SessionEngine:
     def redo(self, trial_index: int, reason: str = "redo requested by the experimenter") -> None:
         """Run this trial again; the earlier attempt stays in the file, marked superseded."""
         with self._lock:
-            between_trials = self._state is State.PAUSED and self.current is None
-            if self._state in (State.RUNNING, State.PAUSED, State.ABORTING) and not between_trials:
+            busy = self._state in (State.RUNNING, State.PAUSED, State.ABORTING)
+            if busy and not self.waiting_for_start:
                 raise IllegalTransition(f"cannot redo a trial while {self._state.value}")
             spec = self.plan.trial(trial_index)
             att = self._attempts.get(trial_index, [])
