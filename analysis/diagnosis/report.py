@@ -416,13 +416,8 @@ def write_html(path: Path, result, prep, setup, sel, drift) -> None:
     comp = result.comparison
     from analysis.diagnosis import compare as C
 
-    sims = {
-        "baseline": C.compare_trials(setup.trials, sel.base.arms, setup.base_mech),
-        "extended": C.compare_trials(
-            setup.trials, sel.final.arms, sel.final_spec.mechanisms(sel.final.x)
-        ),
-    }
-    # The example trial: where the extension changed the torque's VAF most.
+    # The example trial: where the extension changed the torque's VAF most. Only it is
+    # simulated again for the figure (each trial's simulation is its own, and deterministic).
     vt = comp["vaf_per_trial"]
     example = max(
         setup.trials,
@@ -430,6 +425,12 @@ def write_html(path: Path, result, prep, setup, sel, drift) -> None:
             (vt[t.label]["extended"]["td"] or 0) - (vt[t.label]["baseline"]["td"] or 0)
         ),
     )
+    sims = {
+        "baseline": C.compare_trials([example], sel.base.arms, setup.base_mech),
+        "extended": C.compare_trials(
+            [example], sel.final.arms, sel.final_spec.mechanisms(sel.final.x)
+        ),
+    }
     figs = {
         "candidates": _uri(fig_candidates(result)),
         "time": _uri(fig_time(example, {m: sims[m][example.label] for m in sims})),
