@@ -58,6 +58,7 @@ from analysis.stats import (
     prepare_wide,
     rm_anova,
 )
+from analysis.strict_json import json_clean
 from analysis.study import (
     PAPER_CONDITION_ORDER,
     AnalysisOptions,
@@ -98,23 +99,6 @@ PAPER_TABLE2: Mapping[str, Mapping[str, float | None]] = {
     "BT18": {"lti": 96.6, "lpv": 95.1},
     "RT": {"lti": 91.5, "lpv": None},
 }
-
-
-def json_clean(x: Any) -> Any:
-    """Strict JSON: numpy scalars and arrays to Python, NaN and infinities to None."""
-    if isinstance(x, dict):
-        return {str(k): json_clean(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [json_clean(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return json_clean(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, Path):
-        return str(x)
-    return x
 
 
 # ------------------------------------------------------------------------------------------

@@ -35,7 +35,6 @@ Drift is judged separately, on the per-trial arm parameters (:mod:`analysis.diag
 from __future__ import annotations
 
 import concurrent.futures as cf
-import math
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
@@ -455,7 +454,3 @@ def select(
 def refit_noise(setup: Setup, fit: FitResult) -> NoiseModel:
     """The noise model re-estimated from a fitted model's residual (for the final checks)."""
     return noise_model(setup.trials, fit.simulated)
-
-
-def log_n(fit: FitResult) -> float:
-    return math.log(max(fit.n_obs, 2))

@@ -22,6 +22,7 @@ from analysis.diagnosis.engine import (
     _limit_threads,
     build_setup,
     plausible_arm,
+    refit_noise,
     select,
     set_remnants,
 )
@@ -34,6 +35,7 @@ from analysis.diagnosis.fit import (
     whitened_power,
 )
 from analysis.diagnosis.simulate import remnant_spectrum_fit, simulated_spectra
+from analysis.strict_json import json_clean
 from hardware.sim.mechanisms import Drift, Mechanisms
 from hardware.sim.model_file import (
     ARM_KEYS,
@@ -73,7 +75,7 @@ class DiagnosisResult:
     baseline_model: str | None = None
 
     def to_dict(self) -> dict:
-        return _clean(
+        return json_clean(
             {
                 "format": "steerlab-diagnosis",
                 "format_version": 1,
@@ -137,20 +139,6 @@ def _fmt(v: Any) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "–"
     return f"{v:.4g}"
-
-
-def _clean(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_clean(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _clean(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 class _Stages:
@@ -307,7 +295,7 @@ def _stiffness_rows(
 
 def _unexplained(setup: Setup, fit: FitResult) -> dict | None:
     """Is a clear residual left? Judged with the noise re-estimated from ``fit``'s residual."""
-    noise = noise_model(setup.trials, fit.simulated)
+    noise = refit_noise(setup, fit)
     exc = np.zeros(2)
     n_exc = 0
     by_cond: dict[str, list[float]] = {}
