@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from analysis.armfit import fit_percent
 from analysis.diagnosis.data import TrialData
 from analysis.diagnosis.fit import NoiseModel
 from analysis.diagnosis.simulate import simulated_segment
@@ -268,9 +269,7 @@ def trial_fit_percent(t: TrialData, Ysim: np.ndarray) -> float:
     num_s = _bc(band, np.conj(tp) * Ysim[0, idx], nb)
     den_s = _bc(band, np.conj(tp) * Ysim[1, idx], nb)
     f = np.bincount(band, t.freqs_hz[idx], nb) / np.maximum(np.bincount(band, minlength=nb), 1)
-    H, Hm = num / den, num_s / den_s
-    w = 1.0 / f
-    return float(100.0 * (1.0 - np.sum(w * np.abs(H - Hm) ** 2) / np.sum(w * np.abs(Hm) ** 2)))
+    return fit_percent(f, num / den, num_s / den_s)
 
 
 # -- unexcited frequencies ----------------------------------------------------------------------
