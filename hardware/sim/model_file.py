@@ -116,12 +116,6 @@ def world_model_text(
     return "\n".join(lines) + "\n"
 
 
-def write_world_model(path: str | Path, text: str) -> Path:
-    p = Path(path)
-    p.write_text(text, encoding="utf-8")
-    return p
-
-
 # -- reading ------------------------------------------------------------------------------------
 def _number(where: str, d: dict, key: str) -> float:
     if key not in d:
