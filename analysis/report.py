@@ -127,7 +127,7 @@ def write_report(
     )
     timings = res.timings_s  # read_files, then the analysis's; the report adds its own
     tracking = None
-    if any(r.attrs.get("schedule") for r in records):
+    if any(r.time_varying for r in records):
         # Only studies with time-varying trials get the tracking section (analysis.tracking).
         from analysis.tracking.report_section import analyse_tracking
 

@@ -322,7 +322,7 @@ def _skip_reason(rec: TrialRecord) -> str | None:
         return "superseded by a later attempt of the same trial"
     if rec.status != STATUS_COMPLETE:
         return f"unknown status {rec.status!r}"
-    if rec.attrs.get("schedule"):
+    if rec.time_varying:
         # Its task changed within the trial: no single operating point (analysis.tracking).
         return "time-varying trial (the task changed within it): see the tracking section"
     return None

@@ -103,8 +103,8 @@ def simulate_subject(
 def run_subject(protocol: Protocol, number: int, seed: int, estimators=None) -> dict:
     """Calibrate on the stationary trials, track the time-varying ones, score."""
     recs = simulate_subject(protocol, number, seed)
-    stationary = [r for r in recs if not r.attrs.get("schedule")]
-    varying = [r for r in recs if r.attrs.get("schedule")]
+    stationary = [r for r in recs if not r.time_varying]
+    varying = [r for r in recs if r.time_varying]
     cal = Calibration.from_records(stationary)
     ests = estimators if estimators is not None else default_estimators()
     for e in ests:

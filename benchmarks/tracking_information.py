@@ -68,7 +68,7 @@ def main(argv: list[str]) -> dict:
     rows = []
     for number in range(1, a.subjects + 1):
         recs = simulate_subject(protocol, number, a.seed)
-        cal = Calibration.from_records([r for r in recs if not r.attrs.get("schedule")])
+        cal = Calibration.from_records([r for r in recs if not r.time_varying])
         for rec in recs:
             trial = TrackingTrial.from_record(rec)
             if trial.schedule is not None and trial.schedule.transition == "step":

@@ -62,6 +62,11 @@ class TrialRecord:
         return len(self.time_s)
 
     @property
+    def time_varying(self) -> bool:
+        """Whether the task changed within the trial (it has a ``schedule``)."""
+        return bool(self.attrs.get("schedule"))
+
+    @property
     def usable(self) -> bool:
         return self.status == STATUS_COMPLETE and not self.familiarization
 

@@ -95,7 +95,7 @@ class TrackingTrial:
 
 def is_time_varying(rec: TrialRecord) -> bool:
     """Whether a recorded trial changed its task within the trial (has a ``schedule``)."""
-    return bool(rec.attrs.get("schedule"))
+    return rec.time_varying
 
 
 @dataclass

@@ -88,10 +88,6 @@ class TrackingReport:
         }
 
 
-def has_time_varying(records: Sequence[TrialRecord]) -> bool:
-    return any(is_time_varying(r) for r in records)
-
-
 def analyse_tracking(records: Sequence[TrialRecord]) -> TrackingReport | None:
     """None when no record is a (complete, measured) time-varying trial."""
     varying = [r for r in records if is_time_varying(r) and r.usable]
