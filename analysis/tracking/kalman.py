@@ -379,15 +379,16 @@ class KalmanCore:
         self.out = np.zeros(N_OUT)
 
     def run(self, trial: TrackingTrial) -> np.ndarray:
-        outs = np.empty((trial.n, N_OUT))
-        _run(
-            self.x, self.P, self.cfg, self.coef, self.dphi, self.dq, self.mem,
-            np.ascontiguousarray(trial.perturbation_Nm, dtype=float),
-            np.ascontiguousarray(trial.driver_torque_Nm, dtype=float),
-            np.ascontiguousarray(trial.angle_rad, dtype=float),
-            np.ascontiguousarray(trial.grip_N, dtype=float),
-            outs,
-        )  # fmt: skip
+        return self.run_arrays(
+            trial.perturbation_Nm, trial.driver_torque_Nm, trial.angle_rad, trial.grip_N
+        )
+
+    def run_arrays(self, tp, td, theta, grip) -> np.ndarray:
+        """Samples in (perturbation N·m, driver torque N·m, angle rad, grip N), one compiled
+        call; (n, N_OUT) out, the filter's state carried on."""
+        a = [np.ascontiguousarray(v, dtype=float) for v in (tp, td, theta, grip)]
+        outs = np.empty((len(a[0]), N_OUT))
+        _run(self.x, self.P, self.cfg, self.coef, self.dphi, self.dq, self.mem, *a, outs)
         return outs
 
     def update(self, tp: float, td: float, theta: float, grip: float) -> np.ndarray:

@@ -27,14 +27,12 @@ import numpy as np
 from analysis.tracking.base import TRACKED, admittance
 from analysis.tracking.calibration import Calibration
 from analysis.tracking.kalman import (
-    N_OUT,
     O_MU,
     O_P,
     O_PRIOR_KI,
     O_SD_LOG_KI,
     EKFConfig,
     KalmanCore,
-    _run,
 )
 from analysis.tracking.scheduled import DEFAULT_GRIP_TAU_S
 
@@ -155,9 +153,7 @@ class OnlineTracker:
             for k in range(n):
                 est = self.update(tp[k], td[k], th[k], g[k])
             return est
-        outs = np.empty((n, N_OUT))
-        c = self._core
-        _run(c.x, c.P, c.cfg, c.coef, c.dphi, c.dq, c.mem, tp, td, th, g, outs)
+        outs = self._core.run_arrays(tp, td, th, g)
         self._n += n
         self.last = self._from_out(outs[-1])
         return self.last
