@@ -17,6 +17,7 @@ import json
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -118,8 +119,9 @@ class Calibration:
     source: str = ""
     excluded: dict[str, str] = field(default_factory=dict)
 
-    @property
+    @cached_property
     def prior(self) -> LPVPrior:
+        """The LPV model as arrays, built once (every tracker and benchmark step asks)."""
         return LPVPrior.of(self.lpv)
 
     def parameters_at(self, mu: float) -> dict[str, float]:
