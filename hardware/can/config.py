@@ -15,6 +15,17 @@ from typing import Any, Literal
 
 import can
 
+from .frames import (
+    NMT_COB_ID,
+    SYNC_COB_ID,
+    emcy_cob_id,
+    heartbeat_cob_id,
+    rpdo_cob_id,
+    sdo_rx_cob_id,
+    sdo_tx_cob_id,
+    tpdo_cob_id,
+)
+
 TorqueSensorSource = Literal["pdo", "node", "none"]
 VelocityUnit = Literal["counts_per_s", "rpm"]
 
@@ -89,7 +100,7 @@ class TorqueSensorConfig:
         """COB-ID of the sensor node's frame (``source = "node"`` only, else None)."""
         if self.source != "node" or self.node_id is None:
             return None
-        return self.cob_id if self.cob_id is not None else 0x180 + self.node_id
+        return self.cob_id if self.cob_id is not None else tpdo_cob_id(1, self.node_id)
 
 
 @dataclass(frozen=True)
@@ -366,16 +377,16 @@ def _validate_sensor_node(t: _Check, sensor: TorqueSensorConfig, drive_id: int) 
         # The driver dispatches frames by COB-ID alone: a sensor frame on one of these would be
         # taken for (or hide) the drive's frame, or a SYNC / NMT command.
         taken = {
-            0x000: "NMT",
-            0x080: "SYNC",
-            0x080 + drive_id: "the drive's EMCY",
-            0x180 + drive_id: "the drive's TPDO1",
-            0x280 + drive_id: "the drive's TPDO2",
-            0x200 + drive_id: "the drive's RPDO1",
-            0x580 + drive_id: "the drive's SDO response",
-            0x600 + drive_id: "the drive's SDO request",
-            0x700 + drive_id: "the drive's heartbeat",
-            0x700 + sensor_id: "the sensor's own heartbeat",
+            NMT_COB_ID: "NMT",
+            SYNC_COB_ID: "SYNC",
+            emcy_cob_id(drive_id): "the drive's EMCY",
+            tpdo_cob_id(1, drive_id): "the drive's TPDO1",
+            tpdo_cob_id(2, drive_id): "the drive's TPDO2",
+            rpdo_cob_id(1, drive_id): "the drive's RPDO1",
+            sdo_tx_cob_id(drive_id): "the drive's SDO response",
+            sdo_rx_cob_id(drive_id): "the drive's SDO request",
+            heartbeat_cob_id(drive_id): "the drive's heartbeat",
+            heartbeat_cob_id(sensor_id): "the sensor's own heartbeat",
         }
         if cob_id in taken:
             raise t.fail("cob_id", f"0x{cob_id:03X} is already used by {taken[cob_id]}")
