@@ -346,7 +346,6 @@ class CiA402Drive:
         )
         self._writes = startup_writes(config)
         self._tpdo_timeout_s = config.tpdo_timeout_ms / 1000.0
-        self._hb_timeout_s = config.heartbeat_timeout_ms / 1000.0
 
         # canopen for NMT and SDO only; we feed it the SDO answers from our own reader, so no
         # canopen Notifier competes with the reader for the bus.
@@ -384,13 +383,8 @@ class CiA402Drive:
         self.bad_frames = 0
         self.error_frames = 0
 
-        # heartbeat consumer
-        self._hb_cond = threading.Condition()
-        self._hb_last: float | None = None
-        self._hb_state: int | None = None
-        self._hb_count = 0
-        self._hb_watch_since: float | None = None  # None: not watching yet
-        self._hb_lost_reported = False
+        # heartbeat consumer (watched from the heartbeat's configuration in enable() on)
+        self._hb = _HeartbeatWatch(config.heartbeat_timeout_ms / 1000.0)
 
         self._faults: collections.deque[DriveFault] = collections.deque(maxlen=_HISTORY)
         self._active: dict[tuple[str, object], DriveFault] = {}
@@ -424,7 +418,7 @@ class CiA402Drive:
             self._controlword, self._target = int(Controlword.DISABLE_VOLTAGE), 0
         with self._fault_lock:
             self._active.clear()
-        self._hb_lost_reported = False
+        self._hb.lost_reported = False
         if self._sensor_hb is not None:
             # Not watched while enable() (re)starts it: a node still in pre-operational is not
             # a fault yet; enable() itself waits for it to report OPERATIONAL.
@@ -438,13 +432,13 @@ class CiA402Drive:
                 step = f"SDO write 0x{w.index:04X}:{w.subindex:02X} ({w.what})"
                 self._sdo_write(w)
                 if w.index == PRODUCER_HEARTBEAT:
-                    self._hb_watch_since = time.monotonic()
+                    self._hb.since = time.monotonic()
             step = "check mode of operation"
             self._check_mode()
             step = "check motor rated torque"
             self._check_rated_torque()
             step = "NMT start"
-            hb_seen = self._hb_count
+            hb_seen = self._hb.count
             self._nmt(NmtCommand.START)
             sensor_hb_seen = self._sensor_hb.count if self._sensor_hb is not None else 0
             if self._sensor_id is not None:
@@ -631,22 +625,17 @@ class CiA402Drive:
     @property
     def nmt_state(self) -> int | None:
         """NMT state from the last heartbeat (see :class:`~hardware.can.frames.NmtState`)."""
-        return self._hb_state
+        return self._hb.state
 
     def heartbeat_age_s(self) -> float:
         """Seconds since the drive's last heartbeat (inf if none yet)."""
-        last = self._hb_last
-        return math.inf if last is None else time.monotonic() - last
+        return self._hb.age_s(time.monotonic())
 
     @property
     def heartbeat_lost(self) -> bool:
         """True once heartbeats are expected (configured in enable()) and the last one is older
         than ``heartbeat_timeout_ms``."""
-        since = self._hb_watch_since
-        if since is None:
-            return False
-        last = self._hb_last if self._hb_last is not None and self._hb_last > since else since
-        return time.monotonic() - last > self._hb_timeout_s
+        return self._hb.lost(time.monotonic())
 
     @property
     def sensor_heartbeat_lost(self) -> bool:
@@ -681,9 +670,9 @@ class CiA402Drive:
         if self._closed:
             return
         self._closed = True
-        if self._hb_watch_since is not None:
+        if self._hb.since is not None:
             self.disable()
-        self._hb_watch_since = None
+        self._hb.since = None
         if self._sensor_hb is not None:
             self._sensor_hb.since = None
         self._reader.stop()
@@ -816,16 +805,11 @@ class CiA402Drive:
             self._rx_event.set()
 
     def _on_heartbeat(self, state: int) -> None:
-        now = time.monotonic()
-        with self._hb_cond:
-            self._hb_last = now
-            self._hb_state = state
-            self._hb_count += 1
-            self._hb_cond.notify_all()
-        if self._hb_lost_reported:
+        self._hb.feed(state, time.monotonic())
+        if self._hb.lost_reported:
             log.warning("heartbeat from node %d is back", self.config.node_id)
-            self._hb_lost_reported = False
-        if self._hb_watch_since is None:
+            self._hb.lost_reported = False
+        if self._hb.since is None:
             return
         if state == NmtState.BOOTUP:
             self._enabled = False
@@ -872,9 +856,9 @@ class CiA402Drive:
         self._check_sensor_heartbeat(now)
 
     def _check_heartbeat(self, now: float) -> None:
-        if self._hb_lost_reported or not self.heartbeat_lost:
+        if self._hb.lost_reported or not self.heartbeat_lost:
             return
-        self._hb_lost_reported = True
+        self._hb.lost_reported = True
         self._enabled = False
         age = self.heartbeat_age_s()
         seen = "never received" if math.isinf(age) else f"none for {age:.3f} s"
@@ -1035,18 +1019,14 @@ class CiA402Drive:
             )
 
     def _wait_heartbeat_operational(self, seen_before: int) -> None:
-        deadline = time.monotonic() + self._hb_timeout_s
-        with self._hb_cond:
-            while not (self._hb_count > seen_before and self._hb_state == NmtState.OPERATIONAL):
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    state = "none" if self._hb_state is None else nmt_state_name(self._hb_state)
-                    raise DriveEnableError(
-                        f"no heartbeat with NMT state OPERATIONAL within "
-                        f"{self.config.heartbeat_timeout_ms} ms after NMT start "
-                        f"(last heartbeat state: {state})"
-                    )
-                self._hb_cond.wait(remaining)
+        hb = self._hb
+        if not hb.wait_for(NmtState.OPERATIONAL, seen_before):
+            state = "none" if hb.state is None else nmt_state_name(hb.state)
+            raise DriveEnableError(
+                f"no heartbeat with NMT state OPERATIONAL within "
+                f"{self.config.heartbeat_timeout_ms} ms after NMT start "
+                f"(last heartbeat state: {state})"
+            )
 
     def _wait_sensor_operational(self, seen_before: int) -> None:
         hb = self._sensor_hb
