@@ -44,6 +44,11 @@ class StepSettling:
     segment_s: float
     strict_settling_s: float | None = None  # within the band until the next change
 
+    @property
+    def settling_or_segment_s(self) -> float:
+        """Settling time, a step that never settled counting as its whole segment."""
+        return self.settling_s if self.settling_s is not None else self.segment_s
+
 
 @dataclass
 class TrackingScore:
@@ -68,7 +73,7 @@ class TrackingScore:
         """(median settling s, counting unsettled steps as their segment; settled fraction)."""
         if not self.steps:
             return None, None
-        vals = [s.settling_s if s.settling_s is not None else s.segment_s for s in self.steps]
+        vals = [s.settling_or_segment_s for s in self.steps]
         frac = sum(s.settling_s is not None for s in self.steps) / len(self.steps)
         return float(np.median(vals)), float(frac)
 
