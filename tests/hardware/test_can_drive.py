@@ -27,6 +27,7 @@ from hardware.can import (
     load_drive_config,
 )
 from hardware.interfaces import TorqueSensor, WheelDrive
+from tests.hardware.can_wire import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -138,15 +139,6 @@ def make_rig():
         if t.name.startswith(("CiA402Drive", "SimulatedDrive"))
     ]
     assert left == [], f"threads left running: {left}"
-
-
-def wait_for(predicate, timeout: float = 1.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.002)
-    return predicate()
 
 
 def test_implements_the_device_interfaces(make_rig):

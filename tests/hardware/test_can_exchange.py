@@ -14,6 +14,7 @@ import can
 import pytest
 
 from hardware.can import CiA402Drive, DriveConfig, SafetyConfig, SimulatedDrive, State402
+from tests.hardware.can_wire import U8, U16, U32, drain, f, sdo_read, sdo_write
 
 NODE = 5
 
@@ -70,34 +71,6 @@ def rig():
         b.shutdown()
     assert sim.errors == []
 
-
-def drain(bus: can.BusABC) -> list[tuple[int, str]]:
-    frames = []
-    while (msg := bus.recv(0.02)) is not None:
-        frames.append((msg.arbitration_id, msg.data.hex(" ")))
-    return frames
-
-
-def f(cob_id: int, data: str) -> tuple[int, str]:
-    return (cob_id, data.lower())
-
-
-def sdo_write(index_lo_hi: str, sub: str, cmd_and_value: tuple[str, str]) -> list:
-    """Expedited download request (0x605) and its confirmation (0x585)."""
-    cmd, value = cmd_and_value
-    return [
-        f(0x605, f"{cmd} {index_lo_hi} {sub} {value}"),
-        f(0x585, f"60 {index_lo_hi} {sub} 00 00 00 00"),
-    ]
-
-
-def sdo_read(index_lo_hi: str, sub: str, answer: str) -> list:
-    return [f(0x605, f"40 {index_lo_hi} {sub} 00 00 00 00"), f(0x585, f"{answer}")]
-
-
-U8 = "2f"  # expedited, size indicated, 1 byte (CiA 301: ccs=1, n=3, e=1, s=1)
-U16 = "2b"  # 2 bytes
-U32 = "23"  # 4 bytes
 
 EXPECTED_STARTUP = [
     f(0x000, "80 05"),  # NMT enter pre-operational, node 5

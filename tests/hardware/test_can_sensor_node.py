@@ -40,6 +40,8 @@ from hardware.can import (
     load_drive_config,
 )
 from hardware.interfaces import TorqueSensor
+from tests.hardware import can_wire
+from tests.hardware.can_wire import U8, U16, U32, f, sdo_read, sdo_write, wait_for
 from tests.helpers import edit, write_rig
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -179,25 +181,8 @@ def make_rig():
 
 
 def drain(bus: can.BusABC, timeout: float = 0.03, max_s: float = 1.0) -> list[tuple[int, str]]:
-    """Frames until the bus is quiet for ``timeout`` (or ``max_s`` passed: heartbeats)."""
-    frames = []
-    end = time.monotonic() + max_s
-    while time.monotonic() < end and (msg := bus.recv(timeout)) is not None:
-        frames.append((msg.arbitration_id, msg.data.hex(" ")))
-    return frames
-
-
-def f(cob_id: int, data: str) -> tuple[int, str]:
-    return (cob_id, data.lower())
-
-
-def wait_for(predicate, timeout: float = 1.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.002)
-    return predicate()
+    # Longer quiet and a cap: the sensor node's heartbeats never let the bus go quiet.
+    return can_wire.drain(bus, timeout, max_s)
 
 
 # -- the frame format ---------------------------------------------------------------------------
@@ -231,21 +216,6 @@ def test_sensor_frame_errors():
 
 # -- the exchange on the wire -------------------------------------------------------------------
 
-
-def sdo_write(index_lo_hi: str, sub: str, cmd_and_value: tuple[str, str]) -> list:
-    """Expedited download request (0x605) and its confirmation (0x585)."""
-    cmd, value = cmd_and_value
-    return [
-        f(0x605, f"{cmd} {index_lo_hi} {sub} {value}"),
-        f(0x585, f"60 {index_lo_hi} {sub} 00 00 00 00"),
-    ]
-
-
-def sdo_read(index_lo_hi: str, sub: str, answer: str) -> list:
-    return [f(0x605, f"40 {index_lo_hi} {sub} 00 00 00 00"), f(0x585, answer)]
-
-
-U8, U16, U32 = "2f", "2b", "23"  # expedited download of 1, 2, 4 bytes (CiA 301)
 
 EXPECTED_STARTUP = [
     f(0x000, "80 05"),  # NMT enter pre-operational, drive node 5 (the sensor node is left alone)
