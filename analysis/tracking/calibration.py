@@ -25,6 +25,7 @@ import numpy as np
 from scipy import signal
 
 from analysis.lpv import DEFAULT_EXCLUSIONS, OperatingPoint, PhysicalLPV
+from analysis.lpv_results import LPVLoadError, points_from_document
 from analysis.tracking.base import TRACKED, closed_loop_response
 from protocols.protocol import VirtualWheel
 from protocols.records import TrialRecord
@@ -160,6 +161,7 @@ class Calibration:
         wheel: VirtualWheel | None = None,
         exclude: Mapping[str, str] = DEFAULT_EXCLUSIONS,
         source: str = "",
+        order: int = LPV_ORDER,
     ) -> Calibration:
         pts = sorted(points, key=lambda p: p.mu_N)
         used = [p for p in pts if p.condition not in exclude]
@@ -170,7 +172,7 @@ class Calibration:
                 f"{source or 'calibration'}: {n_mu} operating point(s) with distinct grip force; "
                 "the LPV model needs at least 2 stationary conditions"
             )
-        model = PhysicalLPV.fit(used, order=min(LPV_ORDER, n_mu - 1), out_of_range="clip")
+        model = PhysicalLPV.fit(used, order=min(order, n_mu - 1), out_of_range="clip")
         I_vals = {float(p.parameters["I_i"]) for p in used}
         if len(I_vals) > 1:
             raise CalibrationError(f"operating points differ in I_i {sorted(I_vals)}; fix it")
@@ -243,21 +245,14 @@ class Calibration:
                 raise CalibrationError(f"{where}: cannot read results ({e})") from None
         else:
             where, doc = "results", results
-        lpv = doc.get("lpv") if isinstance(doc, Mapping) else None
-        if not isinstance(lpv, Mapping) or not isinstance(lpv.get("operating_points"), list):
-            raise CalibrationError(f"{where}: no lpv.operating_points (a report's results.json?)")
-        pts = []
-        for i, p in enumerate(lpv["operating_points"]):
-            if not isinstance(p, Mapping) or p.get("included") is False:
-                continue
-            try:
-                params = {k: _number(v) for k, v in p["parameters"].items()}
-                pts.append(OperatingPoint(str(p["condition"]), _number(p["mu_N"]), params))
-            except (KeyError, TypeError, ValueError) as e:
-                raise CalibrationError(f"{where}: operating point #{i + 1}: {e}") from None
-        cal = (doc.get("tracking") or {}).get("calibration") or {}
+        try:
+            report = points_from_document(doc, where)
+        except LPVLoadError as e:
+            raise CalibrationError(str(e)) from None
+        meta = doc if isinstance(doc, Mapping) else {}  # a bare list of points has no more
+        cal = (meta.get("tracking") or {}).get("calibration") or {}
         dist = Disturbance.from_dict(cal["disturbance"]) if "disturbance" in cal else None
-        wheels = [f.get("wheel") for f in doc.get("provenance", {}).get("input_files", [])]
+        wheels = [f.get("wheel") for f in meta.get("provenance", {}).get("input_files", [])]
         w = next((x for x in wheels if isinstance(x, Mapping)), None)
         wheel = None
         if w:
@@ -267,11 +262,12 @@ class Calibration:
                 float(w.get("stiffness_Nm_per_rad", 4.2)),
             )
         return cls.from_points(
-            pts,
+            report.points,
             disturbance=dist,
             wheel=wheel,
             exclude={},  # the report marked its exclusions already ("included": false)
             source=where,
+            order=report.order,
         )
 
 
@@ -289,14 +285,6 @@ class CalibratedTracker:
         if self.calibration is None:
             raise RuntimeError(f"{self.name}: calibrate before tracking")
         return self.calibration
-
-
-def _number(v: Any) -> float:
-    if isinstance(v, Mapping):
-        v = v.get("value")
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-        raise ValueError(f"expected a finite number, got {v!r}")
-    return float(v)
 
 
 def _gm2_corner(x: np.ndarray, fs_hz: float) -> float:
