@@ -274,3 +274,34 @@ def _calibrated(cal: Calibration) -> GripInformedEKF:
     est = GripInformedEKF()
     est.calibrate(cal)
     return est
+
+
+def test_calibration_and_gui_read_results_json_alike():
+    """The trackers' calibration and the GUI's LPV panel read results.json with one reader, so
+    both fit the report's ``lpv.order``: with order 1 each parameter is the least-squares line
+    through the points (numpy's polyfit), in both, and RT marked ``included: false`` is out."""
+    pts = _points()
+    doc = {
+        "lpv": {
+            "order": 1,
+            "operating_points": [
+                {"condition": "RT", "mu_N": 40.0, "included": False,
+                 "parameters": {**pts[0].parameters, "k_i": 1.0}},
+            ] + [
+                {"condition": p.condition, "mu_N": p.mu_N, "included": True,
+                 "parameters": {k: {"value": v} for k, v in p.parameters.items()}}
+                for p in pts
+            ],
+        }
+    }  # fmt: skip
+    from app.gui.lpv_loader import lpv_from_document
+
+    cal = Calibration.from_results(doc)
+    gui = lpv_from_document(doc).model
+    mu = np.array([p.mu_N for p in pts])
+    for g in (mu.min(), mu.mean(), 0.5 * (mu[1] + mu[2]), mu.max()):
+        for i, n in enumerate(TRACKED):
+            line = np.polyval(np.polyfit(mu, [p.parameters[n] for p in pts], 1), g)
+            assert cal.prior(g)[i] == pytest.approx(line, rel=1e-9)
+            assert gui.parameters(g)[n] == pytest.approx(line, rel=1e-9)
+    assert [p.condition for p in cal.points] == [p.condition for p in pts]
