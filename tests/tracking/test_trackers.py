@@ -294,7 +294,7 @@ def test_calibration_and_gui_read_results_json_alike():
             ],
         }
     }  # fmt: skip
-    from app.gui.lpv_loader import lpv_from_document
+    from analysis.lpv_results import lpv_from_document
 
     cal = Calibration.from_results(doc)
     gui = lpv_from_document(doc).model
