@@ -1,12 +1,16 @@
 """What the CAN tests see on the wire: frames as (COB-ID, hex bytes), the expedited SDO
-exchanges with node 5, and waiting for a condition the bus threads bring about."""
+exchanges with node 5, the node-5 drive those frames are worked out for, and waiting for a
+condition the bus threads bring about."""
 
 from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import can
+
+from hardware.can import DriveConfig, SafetyConfig
 
 U8, U16, U32 = "2f", "2b", "23"  # expedited download of 1, 2, 4 bytes (CiA 301)
 
@@ -44,3 +48,25 @@ def wait_for(predicate, timeout: float = 1.0) -> bool:
             return True
         time.sleep(0.002)
     return predicate()
+
+
+def node5_config(channel: str, **changes) -> DriveConfig:
+    """The drive whose frames the exchange and sensor-node tests work out by hand: node 5,
+    4096 counts per revolution, 10 N·m rated, gear 2 and sign −1 (so every conversion has to
+    get both right); generous timeouts, as these tests check behaviour, not timing."""
+    cfg = DriveConfig(
+        node_id=5,
+        interface="virtual",
+        channel=channel,
+        bitrate=1_000_000,
+        encoder_counts_per_rev=4096,
+        rated_torque_nm=10.0,
+        gear_ratio=2.0,
+        sign=-1,
+        safety=SafetyConfig(max_torque_nm=8.0, max_slew_nm_per_s=100.0, soft_angle_limit_deg=360.0),
+        heartbeat_ms=50,
+        heartbeat_timeout_ms=150,
+        loop_rate_hz=20.0,
+        tpdo_timeout_ms=45.0,
+    )
+    return replace(cfg, **changes)

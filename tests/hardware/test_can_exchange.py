@@ -13,8 +13,8 @@ import uuid
 import can
 import pytest
 
-from hardware.can import CiA402Drive, DriveConfig, SafetyConfig, SimulatedDrive, State402
-from tests.hardware.can_wire import U8, U16, U32, drain, f, sdo_read, sdo_write
+from hardware.can import CiA402Drive, DriveConfig, SimulatedDrive, State402
+from tests.hardware.can_wire import U8, U16, U32, drain, f, node5_config, sdo_read, sdo_write
 
 NODE = 5
 
@@ -34,22 +34,7 @@ class ScriptedPlant:
 
 
 def config(channel: str) -> DriveConfig:
-    # sign −1 and gear 2 so every conversion below has to get both right
-    return DriveConfig(
-        node_id=NODE,
-        interface="virtual",
-        channel=channel,
-        bitrate=1_000_000,
-        encoder_counts_per_rev=4096,
-        rated_torque_nm=10.0,
-        gear_ratio=2.0,
-        sign=-1,
-        safety=SafetyConfig(max_torque_nm=8.0, max_slew_nm_per_s=100.0, soft_angle_limit_deg=360.0),
-        heartbeat_ms=50,
-        heartbeat_timeout_ms=150,
-        loop_rate_hz=20.0,
-        tpdo_timeout_ms=45.0,
-    )
+    return node5_config(channel)
 
 
 @pytest.fixture

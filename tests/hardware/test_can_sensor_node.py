@@ -29,7 +29,6 @@ from hardware.can import (
     DriveError,
     FrameError,
     NmtState,
-    SafetyConfig,
     SensorFrame,
     SharedPlant,
     SimulatedDrive,
@@ -41,7 +40,7 @@ from hardware.can import (
 )
 from hardware.interfaces import TorqueSensor
 from tests.hardware import can_wire
-from tests.hardware.can_wire import U8, U16, U32, f, sdo_read, sdo_write, wait_for
+from tests.hardware.can_wire import U8, U16, U32, f, node5_config, sdo_read, sdo_write, wait_for
 from tests.helpers import edit, write_rig
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -55,25 +54,7 @@ NODE_SENSOR = TorqueSensorConfig(
 
 
 def config(channel: str, sensor: TorqueSensorConfig = NODE_SENSOR, **changes) -> DriveConfig:
-    cfg = DriveConfig(
-        node_id=DRIVE,
-        interface="virtual",
-        channel=channel,
-        bitrate=1_000_000,
-        encoder_counts_per_rev=4096,
-        rated_torque_nm=10.0,
-        gear_ratio=2.0,
-        sign=-1,
-        safety=SafetyConfig(max_torque_nm=8.0, max_slew_nm_per_s=100.0, soft_angle_limit_deg=360.0),
-        # generous timeouts: these tests check behaviour, not timing, on a busy machine
-        heartbeat_ms=50,
-        heartbeat_timeout_ms=150,
-        loop_rate_hz=20.0,
-        tpdo_timeout_ms=45.0,
-        state_timeout_s=0.2,
-        torque_sensor=sensor,
-    )
-    return replace(cfg, **changes)
+    return node5_config(channel, **{"state_timeout_s": 0.2, "torque_sensor": sensor, **changes})
 
 
 class ScriptedPlant:
