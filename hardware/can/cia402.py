@@ -258,28 +258,21 @@ def startup_writes(config: DriveConfig) -> list[SdoWrite]:
     )
     # Drives often ship with more PDOs enabled (predefined connection set); switch off the ones
     # we do not use so they cannot add bus load to the 1 kHz cycle.
-    for k in (2, 3, 4):
-        writes.append(
-            SdoWrite(
-                0x1400 + k - 1,
-                1,
-                PDO_INVALID | rpdo_cob_id(k, n),
-                4,
-                what=f"RPDO{k} off",
-                optional=True,
+    for comm, cob_id, kind, numbers in (
+        (0x1400, rpdo_cob_id, "RPDO", (2, 3, 4)),
+        (0x1800, tpdo_cob_id, "TPDO", (3, 4)),
+    ):
+        for k in numbers:
+            writes.append(
+                SdoWrite(
+                    comm + k - 1,
+                    1,
+                    PDO_INVALID | cob_id(k, n),
+                    4,
+                    what=f"{kind}{k} off",
+                    optional=True,
+                )
             )
-        )
-    for k in (3, 4):
-        writes.append(
-            SdoWrite(
-                0x1800 + k - 1,
-                1,
-                PDO_INVALID | tpdo_cob_id(k, n),
-                4,
-                what=f"TPDO{k} off",
-                optional=True,
-            )
-        )
     writes += [
         SdoWrite(
             COMM_CYCLE_PERIOD,
