@@ -4,6 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
+from hardware.can import ConfigError, load_drive_config
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -27,3 +31,16 @@ def edit(text: str, old: str, new: str) -> str:
     """``text`` with ``old`` replaced; fails if ``old`` is not there (a stale test edit)."""
     assert old in text, old
     return text.replace(old, new)
+
+
+def assert_rig_error(tmp_path: Path, text: str, section: str, field: str, expected: str) -> None:
+    """Loading ``text`` as a rig file raises a ConfigError that names the file, the section and
+    the field, in that order at the start of its message, and says ``expected``."""
+    path = write_rig(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_drive_config(path)
+    err = info.value
+    assert (err.file, err.section, err.field) == (str(path), section, field)
+    message = str(err)
+    assert message.startswith(f"{path}: [{section}] {field}: "), message
+    assert expected in message, message

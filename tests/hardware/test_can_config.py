@@ -19,7 +19,7 @@ from hardware.can import (
     load_drive_config,
     open_bus,
 )
-from tests.helpers import edit, write_rig
+from tests.helpers import assert_rig_error, edit, write_rig
 
 ROOT = Path(__file__).resolve().parents[2]
 SIMULATED = ROOT / "hardware" / "rigs" / "simulated.toml"
@@ -139,14 +139,7 @@ def test_good_file_values_and_defaults(tmp_path):
     ],
 )
 def test_errors_name_file_section_field(tmp_path, old, new, section, field, expected):
-    path = write_rig(tmp_path, edit(GOOD, old, new))
-    with pytest.raises(ConfigError) as info:
-        load_drive_config(path)
-    err = info.value
-    assert (err.file, err.section, err.field) == (str(path), section, field)
-    message = str(err)
-    assert message.startswith(f"{path}: [{section}] {field}: "), message
-    assert expected in message
+    assert_rig_error(tmp_path, edit(GOOD, old, new), section, field, expected)
 
 
 def test_missing_tables(tmp_path):

@@ -23,7 +23,6 @@ from hypothesis import strategies as st
 
 from hardware.can import (
     CiA402Drive,
-    ConfigError,
     DriveConfig,
     DriveEnableError,
     DriveError,
@@ -41,7 +40,7 @@ from hardware.can import (
 from hardware.interfaces import TorqueSensor
 from tests.hardware import can_wire
 from tests.hardware.can_wire import U8, U16, U32, f, node5_config, sdo_read, sdo_write, wait_for
-from tests.helpers import edit, write_rig
+from tests.helpers import assert_rig_error, edit, write_rig
 
 ROOT = Path(__file__).resolve().parents[2]
 DRIVE = 5
@@ -643,14 +642,7 @@ def test_good_node_config(tmp_path):
     ],
 )
 def test_node_config_errors_name_file_section_field(tmp_path, old, new, section, field, expected):
-    path = write_rig(tmp_path, edit(GOOD_NODE, old, new))
-    with pytest.raises(ConfigError) as info:
-        load_drive_config(path)
-    err = info.value
-    assert (err.file, err.section, err.field) == (str(path), section, field)
-    message = str(err)
-    assert message.startswith(f"{path}: [{section}] {field}: "), message
-    assert expected in message, message
+    assert_rig_error(tmp_path, edit(GOOD_NODE, old, new), section, field, expected)
 
 
 # -- fuzz ---------------------------------------------------------------------------------------
