@@ -1,7 +1,7 @@
 """Read the LPV admittance model back from a report's ``results.json``.
 
 One reader for everything that takes the model from a report: the GUI's live panel
-(:mod:`app.gui.lpv_loader` re-exports it) and the trackers' calibration
+(:mod:`app.gui.live_admittance`) and the trackers' calibration
 (:meth:`analysis.tracking.Calibration.from_results`), so both fit the same polynomials from the
 same points, in the report's ``lpv.order``.
 

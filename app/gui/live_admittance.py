@@ -27,8 +27,8 @@ from PySide6.QtWidgets import (
 )
 
 import app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
+from analysis.lpv_results import LoadedLPV, LPVLoadError, load_lpv_model
 from app.gui.livedata import LiveData
-from app.gui.lpv_loader import LoadedLPV, LPVLoadError, load_lpv_model
 from app.gui.plots import log_ticks
 from app.gui.tracker_feed import TrackerFeed
 
