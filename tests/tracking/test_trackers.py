@@ -305,3 +305,25 @@ def test_calibration_and_gui_read_results_json_alike():
             assert cal.prior(g)[i] == pytest.approx(line, rel=1e-9)
             assert gui.parameters(g)[n] == pytest.approx(line, rel=1e-9)
     assert [p.condition for p in cal.points] == [p.condition for p in pts]
+
+
+@pytest.mark.parametrize(
+    "points, match",
+    [
+        ([{"condition": "BT18", "mu_N": 46.0, "parameters": {"k_i": 9.0}}], "parameters miss"),
+        (
+            [{"condition": "BT18", "mu_N": "heavy", "parameters": dict(_points()[0].parameters)}],
+            r"operating point #1\.mu_N: expected a finite number",
+        ),
+    ],
+)
+def test_calibration_from_bad_results_names_the_point(tmp_path, points, match):
+    """A results.json the trackers cannot use: CalibrationError (a ValueError), naming the file
+    and the operating point, through the same reader as the GUI."""
+    from analysis.tracking.calibration import CalibrationError
+
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps({"lpv": {"operating_points": points}}))
+    with pytest.raises(CalibrationError, match=match) as info:
+        OnlineTracker.from_results(path, FS)
+    assert str(info.value).startswith(str(path))
