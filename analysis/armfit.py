@@ -48,7 +48,7 @@ VAF (time domain): see :func:`simulate_angle` and :func:`vaf_percent`.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Protocol
 
@@ -136,35 +136,55 @@ class AdmittanceEstimate(Protocol):
     coherence: np.ndarray
 
 
-WEIGHTINGS = ("paper", "inverse_variance")
+WEIGHTINGS = ("inverse_variance", "paper")
+INERTIA_MODES = ("subject", "free", "fixed")
+# Inertia values of the coarse profile that gives the joint fit its start (kg·m²): from a
+# slender forearm to both arms braced, beyond what a human arm about the column can have.
+INERTIA_START_GRID = tuple(float(x) for x in np.geomspace(0.02, 0.6, 9))
 
 
 @dataclass(frozen=True)
 class FitOptions:
-    I_i: float = DEFAULT_I_I_KGM2  # fixed value, or the start value when fit_inertia
-    fit_inertia: bool = False
+    """How :func:`fit_arm` / :func:`fit_arm_joint` fit the arm model.
+
+    ``weighting``: "inverse_variance" (the default: maximum likelihood with a noise model
+    measured at the unexcited bins and smoothed across frequency, see
+    ``docs/method-estimator.md``) or "paper" (coherence × 1/f, Pronker et al. 2017).
+    ``inertia``: "subject" (the default: one I_i per subject, shared by all of that subject's
+    conditions, :func:`fit_arm_joint`), "free" (one I_i per fit) or "fixed" (held at ``I_i``).
+    """
+
+    I_i: float = DEFAULT_I_I_KGM2  # the held value when inertia="fixed"
+    inertia: str = "subject"
     n_exclude_low: int = DEFAULT_N_EXCLUDE_LOW
-    coherence_weighting: bool = True
-    frequency_weighting: bool = True
+    coherence_weighting: bool = True  # paper weighting only
+    frequency_weighting: bool = True  # paper weighting only
     # Compare each band with the model mixed over the band's bins exactly as the estimator mixed
     # the data (FrequencyResponse.bin_weights) rather than with H at the band's mean frequency.
     # The double-band average is not H at the mean frequency: near the arm's resonance the two
     # differ by ~0.5 %, enough to bias b_c by about 1 % on noise-free data.
     band_mixing: bool = True
-    # "paper": coherence × 1/f (Pronker et al. 2017). "inverse_variance": 1/var(Ĥ) per band,
-    # from the noise at the unexcited bins: far better contact parameters (b_c, k_c) on
-    # simulated data (docs/benchmarks.md, estimator_efficiency), but not the paper's numbers.
-    weighting: str = "paper"
+    weighting: str = "inverse_variance"
 
     def __post_init__(self) -> None:
         if self.weighting not in WEIGHTINGS:
             raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {self.weighting!r}")
+        if self.inertia not in INERTIA_MODES:
+            raise ValueError(f"inertia must be one of {INERTIA_MODES}, got {self.inertia!r}")
+        if not (np.isfinite(self.I_i) and BOUNDS["I_i"][0] < self.I_i < BOUNDS["I_i"][1]):
+            raise ValueError(
+                f"I_i must be a finite inertia within {BOUNDS['I_i']} kg·m², got {self.I_i}"
+            )
+
+    @property
+    def fit_inertia(self) -> bool:
+        return self.inertia != "fixed"
 
     def to_dict(self) -> dict:
         return {
             "weighting": self.weighting,
-            "I_i_kgm2": self.I_i,
-            "fit_inertia": self.fit_inertia,
+            "inertia": self.inertia,
+            "I_i_kgm2": self.I_i if self.inertia == "fixed" else None,
             "n_exclude_low": self.n_exclude_low,
             "coherence_weighting": self.coherence_weighting,
             "frequency_weighting": self.frequency_weighting,
@@ -175,7 +195,9 @@ class FitOptions:
 @dataclass(frozen=True)
 class ArmFit:
     """A fitted arm model. ``sems``/``covariance`` cover the free parameters only, in
-    ``free`` order; ``vaf_percent`` is None until time data were simulated."""
+    ``free`` order; ``vaf_percent`` is None until time data were simulated. In a joint fit
+    (``inertia`` "subject") I_i is free and shared: its SEM and its covariance with this
+    fit's own parameters are those of the joint fit."""
 
     params: ArmParams
     free: tuple[str, ...]
@@ -195,12 +217,39 @@ class ArmFit:
     sems_residual: dict[str, float] = field(default_factory=dict)
     sems_noise: dict[str, float] | None = None
     vaf_percent: float | None = None
+    # Normalised χ² of the fit under the noise model: Σ|e|²/var / (2K − n), ≈ 1 when the model
+    # explains Ĥ to within its noise (None without a noise model).
+    chi2_per_dof: float | None = None
+    # d(parameter)/d(I_i) at the fit, from the joint covariance: how much each parameter moves
+    # if I_i were held at another value (empty unless I_i is free).
+    inertia_sensitivity: dict[str, float] = field(default_factory=dict)
 
     def admittance(self, f_hz: np.ndarray | float) -> np.ndarray:
         return arm_admittance(self.params, f_hz)
 
     def with_vaf(self, vaf: float) -> ArmFit:
         return replace(self, vaf_percent=float(vaf))
+
+    def at_bound(self) -> list[str]:
+        """Free parameters whose estimate ended on the search box (within 1 %)."""
+        out = []
+        for n in self.free:
+            lo, hi = BOUNDS[n]
+            v = getattr(self.params, n)
+            if v <= lo * 1.01 or v >= hi / 1.01:
+                out.append(n)
+        return out
+
+    def unidentified(self) -> list[str]:
+        """Free parameters the data do not determine: at a search bound, or SEM ≥ value (or no
+        finite SEM). Such values are flagged wherever they appear and kept out of the
+        statistics (``docs/method-estimator.md``)."""
+        bad = set(self.at_bound())
+        for n in self.free:
+            sem = self.sems.get(n, float("nan"))
+            if not (np.isfinite(sem) and sem < getattr(self.params, n)):
+                bad.add(n)
+        return [n for n in self.free if n in bad]
 
     def to_dict(self) -> dict:
         names = [_key(n) for n in self.free]
@@ -220,9 +269,13 @@ class ArmFit:
             "vaf_percent": self.vaf_percent,
             "frequencies_Hz": self.frequencies_hz.tolist(),
             "weighted_residual_variance": self.sigma2,
+            "chi2_per_dof": self.chi2_per_dof,
             "cost": self.cost,
             "success": self.success,
             "message": self.message,
+            "at_bound": [_key(n) for n in self.at_bound()],
+            "unidentified": [_key(n) for n in self.unidentified()],
+            "inertia_sensitivity": {_key(n): v for n, v in self.inertia_sensitivity.items()},
             "options": self.options.to_dict(),
         }
 
@@ -257,20 +310,52 @@ def _clip_log(name: str, value: float) -> float:
     return float(np.log(np.clip(value, lo * 1.0001, hi / 1.0001)))
 
 
-def fit_arm(estimate: AdmittanceEstimate, options: FitOptions | None = None) -> ArmFit:
-    """Fit the arm model to a frequency response (see the module docstring)."""
-    opt = options or FitOptions()
+OWN = PARAM_NAMES[1:]  # the parameters every fit has of its own; I_i is fixed or shared
+_LO = np.array([np.log(BOUNDS[n][0]) for n in OWN])
+_HI = np.array([np.log(BOUNDS[n][1]) for n in OWN])
+_I_LO, _I_HI = np.log(BOUNDS["I_i"][0]), np.log(BOUNDS["I_i"][1])
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """One frequency response prepared for fitting: bands used, weights, noise variance."""
+
+    f: np.ndarray
+    H: np.ndarray
+    s_bins: np.ndarray
+    mix: np.ndarray
+    w: np.ndarray  # weights, before the joint normalisation
+    var: np.ndarray | None  # variance of Ĥ per band (smoothed where available), for the SEMs
+
+    def model(self, p: Mapping[str, float | np.ndarray]) -> np.ndarray:
+        return np.sum(self.mix * _H(p, self.s_bins), axis=-1)
+
+    def partials(self, p: Mapping[str, float], names: Sequence[str]) -> np.ndarray:
+        d = _partials(p, self.s_bins)
+        return np.array([np.sum(self.mix * d[n], axis=-1) for n in names]).T  # (K, n)
+
+
+def _variance(estimate: AdmittanceEstimate, use: np.ndarray) -> np.ndarray | None:
+    for name in ("H_variance_smooth", "H_variance"):
+        v = getattr(estimate, name, None)
+        if v is not None:
+            v = np.asarray(v, dtype=float)[use]
+            if np.all(np.isfinite(v) & (v > 0)):
+                return v
+    return None
+
+
+def _prepare(estimate: AdmittanceEstimate, opt: FitOptions, n_own: int) -> _Problem:
     f_all = np.asarray(estimate.frequencies_hz, dtype=float)
     H_all = np.asarray(estimate.H, dtype=complex)
     coh_all = np.asarray(estimate.coherence, dtype=float)
     ok = np.isfinite(H_all) & np.isfinite(coh_all) & (f_all > 0)
     use = np.nonzero(ok)[0][np.argsort(f_all[ok], kind="stable")][opt.n_exclude_low :]
     f, H, coh = f_all[use], H_all[use], coh_all[use]
-    free = PARAM_NAMES if opt.fit_inertia else PARAM_NAMES[1:]
-    if len(f) < len(free):
+    if len(f) < n_own:
         raise ValueError(
             f"{len(f)} usable bands after leaving out the {opt.n_exclude_low} lowest; "
-            f"fitting {len(free)} parameters needs at least {len(free)}"
+            f"fitting {n_own} parameters needs at least {n_own}"
         )
     bin_f = getattr(estimate, "bin_frequencies_hz", None)
     bin_w = getattr(estimate, "bin_weights", None)
@@ -280,117 +365,304 @@ def fit_arm(estimate: AdmittanceEstimate, options: FitOptions | None = None) -> 
     else:
         s_bins = 2j * np.pi * f[:, None]
         mix = np.ones((len(f), 1), dtype=complex)
-
-    def model(p: Mapping[str, float | np.ndarray]) -> np.ndarray:
-        return np.sum(mix * _H(p, s_bins), axis=-1)
-
-    w = np.ones_like(f)
+    var = _variance(estimate, use)
     if opt.weighting == "inverse_variance":
-        var = np.asarray(getattr(estimate, "H_variance", np.full(len(f_all), np.nan)), float)[use]
-        if not np.all(np.isfinite(var) & (var > 0)):
-            raise ValueError("inverse-variance weighting needs the FRF's variance (H_variance)")
-        w = np.nanmedian(var) / var
+        if var is None:
+            raise ValueError(
+                "inverse-variance weighting needs the FRF's noise variance (H_variance): "
+                "use --weighting paper for a response without noise bins"
+            )
+        w = 1.0 / var
     else:
+        w = np.ones_like(f)
         if opt.coherence_weighting:
             w = w * coh
         if opt.frequency_weighting:
             w = w / f
-    sw = np.sqrt(w)
-    fixed = {"I_i": opt.I_i}
+        # Each response counts alike in a joint fit: weights relative to its own size.
+        w = w / np.sum(w * np.abs(H) ** 2)
+    return _Problem(f, H, s_bins, mix, w, var)
+
+
+def _fit_own(
+    prob: _Problem, I_i: float, x_starts: Sequence[np.ndarray]
+) -> tuple[np.ndarray, float]:
+    """Least squares of one response's own four parameters at a fixed I_i, from each start;
+    the best (log-parameters, cost)."""
+    sw = np.sqrt(prob.w)
 
     def params_of(x: np.ndarray) -> dict[str, float]:
-        p = dict(fixed)
-        p.update({n: float(np.exp(v)) for n, v in zip(free, x, strict=True)})
+        p = {n: float(np.exp(v)) for n, v in zip(OWN, x, strict=True)}
+        p["I_i"] = I_i
         return p
 
-    def partials(p: dict[str, float]) -> np.ndarray:
-        d = _partials(p, s_bins)
-        return np.array([np.sum(mix * d[n], axis=-1) for n in free]).T  # (K, n_free)
-
     def residual(x: np.ndarray) -> np.ndarray:
-        e = sw * (model(params_of(x)) - H)
+        e = sw * (prob.model(params_of(x)) - prob.H)
         return np.concatenate([e.real, e.imag])
 
     def jacobian(x: np.ndarray) -> np.ndarray:
         p = params_of(x)
-        J = sw[:, None] * partials(p) * np.array([p[n] for n in free])  # d/dlog p = p·d/dp
+        J = sw[:, None] * prob.partials(p, OWN) * np.exp(x)
         return np.concatenate([J.real, J.imag])
 
-    # Coarse grid around the physical start: costs for all points at once, keep the best few.
-    start = _start_values(f, H, opt.I_i)
-    x0 = np.array([_clip_log(n, start[n]) for n in free])
-    steps = np.log([0.1, 0.3, 1.0, 3.0, 10.0])
-    grid = x0 + np.stack(np.meshgrid(*[steps] * len(free), indexing="ij"), -1).reshape(
-        -1, len(free)
-    )
-    lo = np.array([np.log(BOUNDS[n][0]) for n in free])
-    hi = np.array([np.log(BOUNDS[n][1]) for n in free])
-    grid = np.clip(grid, lo + 1e-4, hi - 1e-4)
-    pg: dict[str, float | np.ndarray] = {
-        n: np.exp(grid[:, i])[:, None, None] for i, n in enumerate(free)
-    }
-    pg.update(fixed)
-    costs = np.sum(w * np.abs(model(pg) - H) ** 2, axis=1)
-    candidates = [grid[i] for i in np.argsort(costs)[:N_STARTS]]
-
-    best = None
-    for xs in candidates:
+    best_x, best_cost = None, np.inf
+    for xs in x_starts:
         r = least_squares(
-            residual, xs, jac=jacobian, bounds=(lo, hi), method="trf",
-            x_scale=1.0, ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=500,
+            residual, np.clip(xs, _LO + 1e-4, _HI - 1e-4), jac=jacobian, bounds=(_LO, _HI),
+            method="trf", x_scale=1.0, ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=500,
         )  # fmt: skip
-        if best is None or r.cost < best.cost:
-            best = r
-    assert best is not None
-    p_hat = params_of(best.x)
-    H_par = model(p_hat)
+        if r.cost < best_cost:
+            best_x, best_cost = r.x, float(r.cost)
+    assert best_x is not None
+    return best_x, best_cost
 
-    # Cramér–Rao bound in the parameters' own units (not their logarithms).
-    Jc = partials(p_hat)
+
+def _grid_starts(prob: _Problem, I_i: float) -> list[np.ndarray]:
+    """The best points of a coarse grid (×0.1 … ×10 per parameter) around a physical start."""
+    start = _start_values(prob.f, prob.H, I_i)
+    x0 = np.array([_clip_log(n, start[n]) for n in OWN])
+    steps = np.log([0.1, 0.3, 1.0, 3.0, 10.0])
+    grid = x0 + np.stack(np.meshgrid(*[steps] * len(OWN), indexing="ij"), -1).reshape(-1, len(OWN))
+    grid = np.clip(grid, _LO + 1e-4, _HI - 1e-4)
+    pg: dict[str, float | np.ndarray] = {
+        n: np.exp(grid[:, i])[:, None, None] for i, n in enumerate(OWN)
+    }
+    pg["I_i"] = I_i
+    costs = np.sum(prob.w * np.abs(prob.model(pg) - prob.H) ** 2, axis=1)
+    return [grid[i] for i in np.argsort(costs)[:N_STARTS]]
+
+
+@dataclass(frozen=True)
+class JointArmFit:
+    """Fits of several responses of one subject (or of the group) sharing one I_i.
+
+    ``I_i``/``I_i_sem``: the shared inertia and its standard error (None when held fixed);
+    ``profile_I``/``profile_cost``: the summed weighted cost with every response refitted at
+    each I_i of :data:`INERTIA_START_GRID`, which shows how sharply the data determine it.
+    """
+
+    fits: tuple[ArmFit, ...]
+    labels: tuple[str, ...]
+    I_i: float
+    I_i_sem: float | None
+    mode: str
+    profile_I: tuple[float, ...] = ()
+    profile_cost: tuple[float, ...] = ()
+
+    def by_label(self) -> dict[str, ArmFit]:
+        return dict(zip(self.labels, self.fits, strict=True))
+
+    def to_dict(self) -> dict:
+        return {
+            "mode": self.mode,
+            "I_i_kgm2": self.I_i,
+            "I_i_sem_kgm2": self.I_i_sem,
+            "labels": list(self.labels),
+            "profile_I_kgm2": list(self.profile_I),
+            "profile_cost": list(self.profile_cost),
+        }
+
+
+def check_fittable(estimate: AdmittanceEstimate, options: FitOptions | None = None) -> None:
+    """Raise the ``ValueError`` :func:`fit_arm` would raise before fitting (too few usable
+    bands, no noise variance for the default weighting), without fitting."""
+    opt = options or FitOptions()
+    _prepare(estimate, opt, len(OWN) + (1 if opt.fit_inertia else 0))
+
+
+def fit_arm(estimate: AdmittanceEstimate, options: FitOptions | None = None) -> ArmFit:
+    """Fit the arm model to one frequency response (see the module docstring).
+
+    With ``inertia`` "subject" or "free" I_i is fitted from this response alone; to share it
+    between a subject's conditions use :func:`fit_arm_joint`.
+    """
+    return fit_arm_joint([estimate], options).fits[0]
+
+
+def fit_arm_joint(
+    estimates: Sequence[AdmittanceEstimate],
+    options: FitOptions | None = None,
+    labels: Sequence[str] | None = None,
+) -> JointArmFit:
+    """Fit the arm model to several responses at once with one I_i for all of them.
+
+    Each response keeps its own b_i, k_i, b_c, k_c. With ``inertia`` "fixed" the responses are
+    independent fits at the held I_i; with "free" each gets its own I_i (separate fits);
+    otherwise ("subject") I_i is one parameter of a joint maximum-likelihood fit: a profile
+    over :data:`INERTIA_START_GRID` (every response refitted at each value) gives the start,
+    then all parameters are refined together and the covariance is that of the joint fit.
+    """
+    opt = options or FitOptions()
+    ests = list(estimates)
+    if not ests:
+        raise ValueError("fit_arm_joint needs at least one frequency response")
+    labs = tuple(labels) if labels is not None else tuple(str(i) for i in range(len(ests)))
+    if opt.inertia == "free" and len(ests) > 1:
+        fits = [fit_arm_joint([e], opt).fits[0] for e in ests]
+        return JointArmFit(tuple(fits), labs, float("nan"), None, "free")
+    shared = opt.inertia != "fixed"
+    n_own = len(OWN) + (1 if shared else 0)
+    probs = [_prepare(e, opt, n_own) for e in ests]
+    if opt.weighting == "inverse_variance":
+        # One scale for all: relative weights between responses are part of the likelihood.
+        scale = float(np.median(np.concatenate([1.0 / p.w for p in probs])))
+        probs = [replace(p, w=p.w * scale) for p in probs]
+
+    profile_I: list[float] = []
+    profile_cost: list[float] = []
+    if not shared:
+        I0 = opt.I_i
+        xs = [_fit_own(p, I0, _grid_starts(p, I0))[0] for p in probs]
+    else:
+        prev: list[np.ndarray | None] = [None] * len(probs)
+        best = (np.inf, 0.0, [])
+        for I in INERTIA_START_GRID:
+            total, xi = 0.0, []
+            for k, p in enumerate(probs):
+                starts = _grid_starts(p, I)[:2] + ([prev[k]] if prev[k] is not None else [])
+                x, c = _fit_own(p, I, starts)
+                xi.append(x)
+                total += c
+            prev = list(xi)
+            profile_I.append(I)
+            profile_cost.append(2.0 * total)
+            if total < best[0]:
+                best = (total, I, xi)
+        I0, xs = best[1], best[2]
+
+    # Joint refinement: x = [log I_i]? + each response's four log-parameters.
+    n_p = len(OWN)
+    nI = 1 if shared else 0
+    sws = [np.sqrt(p.w) for p in probs]
+
+    def unpack(x: np.ndarray) -> list[dict[str, float]]:
+        I = float(np.exp(x[0])) if shared else I0
+        out = []
+        for k in range(len(probs)):
+            seg = x[nI + k * n_p : nI + (k + 1) * n_p]
+            d = {n: float(np.exp(v)) for n, v in zip(OWN, seg, strict=True)}
+            d["I_i"] = I
+            out.append(d)
+        return out
+
+    names_all = (("I_i",) if shared else ()) + OWN
+
+    def jac_rows(ps: list[dict[str, float]], log: bool) -> list[np.ndarray]:
+        """Per response: ∂(weighted model)/∂(all parameters), complex (K_k, n_total)."""
+        rows = []
+        n_tot = nI + n_p * len(probs)
+        for k, (p, pr) in enumerate(zip(ps, probs, strict=True)):
+            Jk = np.zeros((len(pr.f), n_tot), dtype=complex)
+            d = pr.partials(p, names_all)
+            scale = np.array([p[n] for n in names_all]) if log else 1.0
+            d = d * scale
+            if shared:
+                Jk[:, 0] = d[:, 0]
+            Jk[:, nI + k * n_p : nI + (k + 1) * n_p] = d[:, nI:]
+            rows.append(Jk)
+        return rows
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        es = [sw * (pr.model(p) - pr.H) for sw, pr, p in zip(sws, probs, unpack(x), strict=True)]
+        e = np.concatenate(es)
+        return np.concatenate([e.real, e.imag])
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        J = np.concatenate(
+            [sw[:, None] * Jk for sw, Jk in zip(sws, jac_rows(unpack(x), True), strict=True)]
+        )
+        return np.concatenate([J.real, J.imag])
+
+    head = [np.array([np.log(I0)])] if shared else []
+    x0 = np.concatenate(head + list(xs))
+    lo = np.concatenate(([np.array([_I_LO])] if shared else []) + [_LO] * len(probs))
+    hi = np.concatenate(([np.array([_I_HI])] if shared else []) + [_HI] * len(probs))
+    r = least_squares(
+        residual, np.clip(x0, lo + 1e-4, hi - 1e-4), jac=jacobian, bounds=(lo, hi),
+        method="trf", x_scale=1.0, ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=1000,
+    )  # fmt: skip
+    ps = unpack(r.x)
+
+    # Covariance in the parameters' own units: the sandwich A⁻¹ (Jᵀ W Σ W J) A⁻¹, the inverse
+    # Fisher information (Cramér–Rao bound) when W ∝ Σ⁻¹ (the default weighting).
+    Jc = np.concatenate(jac_rows(ps, False))
     J = np.concatenate([Jc.real, Jc.imag])
-    W = np.concatenate([w, w])
-    cost = float(np.sum(w * np.abs(H_par - H) ** 2))
-    dof = 2 * len(f) - len(free)
-    sigma2 = cost / dof if dof > 0 else float("nan")
+    w_all = np.concatenate([p.w for p in probs])
+    W = np.concatenate([w_all, w_all])
+    H_pars = [pr.model(p) for pr, p in zip(probs, ps, strict=True)]
+    costs = [
+        float(np.sum(pr.w * np.abs(h - pr.H) ** 2)) for pr, h in zip(probs, H_pars, strict=True)
+    ]
+    dof_total = 2 * sum(len(pr.f) for pr in probs) - len(r.x)
+    sigma2_all = sum(costs) / dof_total if dof_total > 0 else float("nan")
     A = J.T @ (W[:, None] * J)
     try:
         A_inv = np.linalg.inv(A)
     except np.linalg.LinAlgError:
         A_inv = np.full(A.shape, np.nan)
-    cov_res = sigma2 * A_inv
-    cov = cov_res
-    method = "residual"
-    cov_noise = None
-    var_all = getattr(estimate, "H_variance", None)
-    if var_all is not None and np.all(np.isfinite(np.asarray(var_all)[use])):
-        v = np.asarray(var_all, dtype=float)[use]
-        S = np.concatenate([v, v]) / 2.0  # complex error: half the variance in each part
+    cov_res = sigma2_all * A_inv
+    have_var = all(pr.var is not None for pr in probs)
+    if have_var:
+        v_all = np.concatenate([pr.var for pr in probs])  # type: ignore[misc]
+        S = np.concatenate([v_all, v_all]) / 2.0  # complex error: half the variance in each part
         cov = cov_noise = A_inv @ (J.T @ ((W**2 * S)[:, None] * J)) @ A_inv
         method = "noise"
+    else:
+        cov, cov_noise, method = cov_res, None, "residual"
 
-    def sd(c: np.ndarray) -> dict[str, float]:
-        return {
-            n: float(np.sqrt(c[i, i])) if c[i, i] >= 0 else float("nan") for i, n in enumerate(free)
-        }
+    fits = []
+    free = names_all
+    for k, (pr, p, h, c) in enumerate(zip(probs, ps, H_pars, costs, strict=True)):
+        idx = ([0] if shared else []) + list(range(nI + k * n_p, nI + (k + 1) * n_p))
+        ix = np.ix_(idx, idx)
 
-    return ArmFit(
-        params=ArmParams(**p_hat),
-        free=tuple(free),
-        sems=sd(cov),
-        covariance=cov,
-        sem_method=method,
-        frequencies_hz=f,
-        H_measured=H,
-        H_model=H_par,
-        weights=w,
-        fit_percent=fit_percent(f, H, H_par),
-        sigma2=sigma2,
-        cost=cost,
-        success=bool(best.success),
-        message=str(best.message),
-        options=opt,
-        sems_residual=sd(cov_res),
-        sems_noise=None if cov_noise is None else sd(cov_noise),
+        def sd(cm: np.ndarray, ix=ix) -> dict[str, float]:
+            sub = cm[ix]
+            return {
+                n: float(np.sqrt(sub[i, i])) if sub[i, i] >= 0 else float("nan")
+                for i, n in enumerate(free)
+            }
+
+        dof = 2 * len(pr.f) - n_p - (nI / len(probs))
+        chi2 = None
+        if pr.var is not None:
+            chi2 = float(np.sum(np.abs(h - pr.H) ** 2 / pr.var) / dof) if dof > 0 else None
+        sens: dict[str, float] = {}
+        if shared and np.isfinite(cov[0, 0]) and cov[0, 0] > 0:
+            sens = {n: float(cov[idx[i], 0] / cov[0, 0]) for i, n in enumerate(free) if i > 0}
+        fits.append(
+            ArmFit(
+                params=ArmParams(**p),
+                free=tuple(free),
+                sems=sd(cov),
+                covariance=cov[ix],
+                sem_method=method,
+                frequencies_hz=pr.f,
+                H_measured=pr.H,
+                H_model=h,
+                weights=pr.w,
+                fit_percent=fit_percent(pr.f, pr.H, h),
+                sigma2=c / dof if dof > 0 else float("nan"),
+                cost=c,
+                success=bool(r.success),
+                message=str(r.message),
+                options=opt,
+                sems_residual=sd(cov_res),
+                sems_noise=None if cov_noise is None else sd(cov_noise),
+                chi2_per_dof=chi2,
+                inertia_sensitivity=sens,
+            )
+        )
+    I_hat = ps[0]["I_i"]
+    I_sem = float(np.sqrt(cov[0, 0])) if shared and cov[0, 0] >= 0 else None
+    return JointArmFit(
+        tuple(fits),
+        labs,
+        float(I_hat),
+        I_sem,
+        "subject" if shared and len(probs) > 1 else ("free" if shared else "fixed"),
+        tuple(profile_I),
+        tuple(profile_cost),
     )
 
 

@@ -24,6 +24,17 @@ Noise
     measured at the noise bins as θ − Ĥ_band·Td, so
         var(Ĥ) ≈ mean|e|² · Σ|Tp|² / |Σ conj(Tp)·Td|²        (first order in the noise)
 
+Smoothed noise model
+    Each band's noise power rests on a few unexcited bins (``noise_bins_per_side`` × 2 per
+    period and repetition), so it scatters by ±30 % or more from band to band; weights made of
+    it would be about as noisy as the data. The remnant and sensor noise are smooth functions
+    of frequency, so :func:`smooth_log_spectrum` fits log power as a local-linear function of
+    log frequency (Gaussian kernel, :data:`DEFAULT_SMOOTHING_DECADES` wide) and corrects the
+    log-χ² bias. ``H_variance_smooth`` is that smoothed noise power times the band's excitation
+    factor Σ|Tp|²/|Σ conj(Tp)·Td|² (which is measured at the excited bins and barely noisy).
+    It is what the default (inverse-variance, maximum-likelihood) fit weights with, and what
+    every fit's standard errors use (docs/method-estimator.md).
+
 Group level
     See :func:`group_frequency_response`.
 """
@@ -34,7 +45,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+from scipy import special, stats
 
 from analysis.periods import (
     DEFAULT_DETECT_BELOW_MAX_DB,
@@ -48,6 +59,49 @@ from analysis.periods import (
 from protocols.records import TrialRecord
 
 DEFAULT_NOISE_BINS_PER_SIDE = 2  # the paper's design leaves two free bins between low bands
+# Kernel width (SD, in decades of frequency) of the noise smoothing: about ±5 bands of the
+# paper's design around 1 Hz, narrow enough to follow a remnant corner anywhere in 0.05–1 Hz.
+DEFAULT_SMOOTHING_DECADES = 0.15
+
+
+def smooth_log_spectrum(
+    f_hz: np.ndarray,
+    power: np.ndarray,
+    dof: np.ndarray | float,
+    decades: float = DEFAULT_SMOOTHING_DECADES,
+) -> np.ndarray:
+    """A smooth estimate of a positive spectrum measured with scatter, on the same frequencies.
+
+    ``power[j]`` is a mean of ``dof[j]/2`` squared magnitudes of complex Gaussian values (a
+    scaled χ² with ``dof`` degrees of freedom). log power is regressed locally-linearly on
+    log10 f with Gaussian kernel weights (SD ``decades``), each point weighted by its dof; the
+    log of a χ² average is biased by ψ(ν/2) − ln(ν/2), which is removed first. Non-finite or
+    non-positive inputs are left out of the regression (and get the smooth value).
+    """
+    f = np.asarray(f_hz, dtype=float)
+    v = np.asarray(power, dtype=float)
+    nu = np.broadcast_to(np.asarray(dof, dtype=float), v.shape)
+    ok = np.isfinite(v) & (v > 0) & np.isfinite(f) & (f > 0) & (nu > 0)
+    out = np.full(v.shape, np.nan)
+    if not np.any(ok):
+        return out
+    x = np.log10(f)
+    y = np.log(v[ok]) - (special.digamma(nu[ok] / 2) - np.log(nu[ok] / 2))
+    xo, no = x[ok], nu[ok]
+    for j in range(len(f)):
+        if not (np.isfinite(f[j]) and f[j] > 0):
+            continue
+        w = no * np.exp(-0.5 * ((xo - x[j]) / decades) ** 2)
+        if np.count_nonzero(w > 1e-3 * w.max()) < 3:
+            out[j] = float(np.sum(w * y) / np.sum(w))
+            continue
+        sw = np.sum(w)
+        xm = np.sum(w * xo) / sw
+        ym = np.sum(w * y) / sw
+        sxx = np.sum(w * (xo - xm) ** 2)
+        slope = np.sum(w * (xo - xm) * (y - ym)) / sxx if sxx > 0 else 0.0
+        out[j] = ym + slope * (x[j] - xm)
+    return np.exp(out)
 
 
 def fourier_coefficients(periods: np.ndarray, bins: np.ndarray) -> np.ndarray:
@@ -158,6 +212,10 @@ class FrequencyResponse:
     bin_frequencies_hz: np.ndarray  # (n_bands, max bins per band)
     bin_weights: np.ndarray  # complex, same shape
     trials: tuple[str, ...] = ()
+    # The same variance from the noise power smoothed across frequency (module docstring);
+    # None only for hand-built responses.
+    H_variance_smooth: np.ndarray | None = None
+    noise_dof: np.ndarray | None = None  # real degrees of freedom of each band's noise power
 
     @property
     def magnitude(self) -> np.ndarray:
@@ -181,6 +239,9 @@ class FrequencyResponse:
             "noise_theta_rad2": self.noise_theta_rad2.tolist(),
             "noise_td_Nm2": self.noise_td_Nm2.tolist(),
             "H_sd_rad_per_Nm": np.sqrt(self.H_variance).tolist(),
+            "H_sd_smoothed_rad_per_Nm": (
+                None if self.H_variance_smooth is None else np.sqrt(self.H_variance_smooth).tolist()
+            ),
             "bins_of_band": [list(b) for b in self.bins_of_band],
             "period_s": self.period_s,
             "trials": list(self.trials),
@@ -222,14 +283,18 @@ def frequency_response(spectra: TrialSpectra | Sequence[TrialSpectra]) -> Freque
     noise_th = np.empty(nb)
     noise_td = np.empty(nb)
     resid = np.empty(nb)
+    dof = np.zeros(nb)
     for j in range(nb):
         nth = np.concatenate([s.noise_theta[:, s.noise_index_of_band[j]] for s in items])
         ntd = np.concatenate([s.noise_td[:, s.noise_index_of_band[j]] for s in items])
         noise_th[j] = np.mean(np.abs(nth) ** 2) if nth.size else np.nan
         noise_td[j] = np.mean(np.abs(ntd) ** 2) if ntd.size else np.nan
         resid[j] = np.mean(np.abs(nth - H[j] * ntd) ** 2) if nth.size else np.nan
+        dof[j] = 2 * nth.size
     with np.errstate(divide="ignore", invalid="ignore"):
-        H_var = resid * s_tp_tp / np.abs(s_tp_td) ** 2
+        excitation_factor = s_tp_tp / np.abs(s_tp_td) ** 2
+        H_var = resid * excitation_factor
+        H_var_smooth = smooth_log_spectrum(exc.band_frequencies_hz, resid, dof) * excitation_factor
     # θ_b = H(f_b)·Td_b at each bin, so Ĥ = Σ_b H(f_b)·c_b / Σ_b c_b with c_b = Σ conj(Tp)·Td.
     width = max(np.count_nonzero(band == j) for j in range(nb))
     bin_f = np.repeat(exc.band_frequencies_hz[:, None], width, axis=1)
@@ -255,6 +320,8 @@ def frequency_response(spectra: TrialSpectra | Sequence[TrialSpectra]) -> Freque
         bin_frequencies_hz=bin_f,
         bin_weights=bin_w,
         trials=tuple(s.label for s in items),
+        H_variance_smooth=H_var_smooth,
+        noise_dof=dof,
     )
 
 
@@ -294,6 +361,9 @@ class GroupFrequencyResponse:
     # the bins of each band, to first order.
     bin_frequencies_hz: np.ndarray
     bin_weights: np.ndarray
+    # H_variance smoothed across frequency (smooth_log_spectrum, 2(n−1) degrees of freedom);
+    # with one subject, that subject's own smoothed noise variance.
+    H_variance_smooth: np.ndarray | None = None
 
     @property
     def magnitude(self) -> np.ndarray:
@@ -358,6 +428,9 @@ def group_frequency_response(
         re_lo = re_hi = im_lo = im_hi = nan
         mag_ci = ph_ci = (nan, nan)
     names = tuple(subjects) if subjects is not None else tuple(str(i) for i in range(n))
+    H_var = (
+        np.sum(np.abs(Hs - H) ** 2, axis=0) / (n * (n - 1)) if n > 1 else np.full(H.shape, np.nan)
+    )
     return GroupFrequencyResponse(
         frequencies_hz=f0.frequencies_hz,
         H=H,
@@ -370,11 +443,14 @@ def group_frequency_response(
         magnitude_ci=mag_ci,
         phase_ci_deg=ph_ci,
         subject_H=Hs,
-        H_variance=(
-            np.sum(np.abs(Hs - H) ** 2, axis=0) / (n * (n - 1))
-            if n > 1
-            else np.full(H.shape, np.nan)
-        ),
+        H_variance=H_var,
         bin_frequencies_hz=f0.bin_frequencies_hz,
         bin_weights=np.mean([r.bin_weights for r in responses], axis=0),
+        # One subject: no spread between subjects, but that subject's own noise still says
+        # how well each band is known (what the fit's weights and SEMs need).
+        H_variance_smooth=(
+            smooth_log_spectrum(f0.frequencies_hz, H_var, 2.0 * (n - 1))
+            if n > 1
+            else f0.H_variance_smooth
+        ),
     )

@@ -22,12 +22,19 @@ from __future__ import annotations
 import concurrent.futures as cf
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from analysis.armfit import ArmFit, FitOptions, fit_arm, vaf_percent
+from analysis.armfit import (
+    ArmFit,
+    FitOptions,
+    JointArmFit,
+    check_fittable,
+    fit_arm_joint,
+    vaf_percent,
+)
 from analysis.frf import (
     DEFAULT_NOISE_BINS_PER_SIDE,
     FrequencyResponse,
@@ -65,6 +72,14 @@ class AnalysisOptions:
     detect_below_max_db: float = DEFAULT_DETECT_BELOW_MAX_DB
     fit: FitOptions = field(default_factory=FitOptions)
     confidence: float = 0.95
+    # Fit every cell a second time with the other weighting (paper ↔ inverse variance), for
+    # the report's side-by-side comparison.
+    compare_weightings: bool = True
+
+    @property
+    def comparison_fit(self) -> FitOptions:
+        other = "paper" if self.fit.weighting == "inverse_variance" else "inverse_variance"
+        return replace(self.fit, weighting=other)
 
     def to_dict(self) -> dict:
         return {
@@ -75,6 +90,7 @@ class AnalysisOptions:
             "detect_below_max_dB": self.detect_below_max_db,
             "fit": self.fit.to_dict(),
             "confidence": self.confidence,
+            "compare_weightings": self.compare_weightings,
         }
 
 
@@ -153,6 +169,7 @@ class SubjectConditionResult:
     fit: ArmFit | None
     grip: GripMoments
     fit_error: str | None = None
+    fit_compare: ArmFit | None = None  # the same cell with the other weighting
 
     @property
     def vaf_percent(self) -> float | None:
@@ -174,8 +191,10 @@ class SubjectConditionResult:
         """One flat row for tables and statistics."""
         row = {"subject": self.subject, "condition": self.condition}
         if self.fit is not None:
+            d = self.fit.to_dict()
             row.update(self.fit.params.to_dict())
-            row.update({f"sem_{k}": v for k, v in self.fit.to_dict()["sem"].items()})
+            row.update({f"sem_{k}": v for k, v in d["sem"].items()})
+            row["unidentified"] = ",".join(d["unidentified"])
         row.update(
             {
                 "vaf_percent": self.vaf_percent,
@@ -204,6 +223,7 @@ class SubjectConditionResult:
             "frf": self.frf.to_dict(),
             "fit": None if self.fit is None else self.fit.to_dict(),
             "fit_error": self.fit_error,
+            "fit_other_weighting": None if self.fit_compare is None else self.fit_compare.to_dict(),
             "vaf_percent": self.vaf_percent,
             "fit_percent": self.fit_percent,
             "grip_mean_N": self.grip_mean_N,
@@ -221,6 +241,7 @@ class ConditionResult:
     grip_subject_means_N: np.ndarray
     grip_subject_sds_N: np.ndarray
     fit_error: str | None = None
+    fit_compare: ArmFit | None = None
 
     @property
     def grip_median_of_means_N(self) -> float:
@@ -235,6 +256,7 @@ class ConditionResult:
             "group_frf": self.group_frf.to_dict(),
             "fit": None if self.fit is None else self.fit.to_dict(),
             "fit_error": self.fit_error,
+            "fit_other_weighting": None if self.fit_compare is None else self.fit_compare.to_dict(),
             "fit_percent": None if self.fit is None else self.fit.fit_percent,
             "grip_mean_of_subject_means_N": float(np.nanmean(self.grip_subject_means_N)),
             "grip_median_of_subject_means_N": self.grip_median_of_means_N,
@@ -266,6 +288,10 @@ class StudyAnalysis:
     skipped: tuple[SkippedTrial, ...]
     options: AnalysisOptions
     notes: tuple[str, ...] = ()
+    # The inertia of each subject's joint fit (and "group" for the conditions' group fits);
+    # empty when I_i is held fixed or fitted per cell.
+    inertia: dict[str, JointArmFit] = field(default_factory=dict)
+    inertia_compare: dict[str, JointArmFit] = field(default_factory=dict)
 
     def result(self, subject: str, condition: str) -> SubjectConditionResult:
         for r in self.subject_conditions:
@@ -307,6 +333,10 @@ class StudyAnalysis:
                 "subject_condition_table": self.table(),
                 "subject_conditions": [r.to_dict() for r in self.subject_conditions],
                 "conditions": [c.to_dict() for c in self.conditions],
+                "inertia": {k: v.to_dict() for k, v in self.inertia.items()},
+                "inertia_other_weighting": {
+                    k: v.to_dict() for k, v in self.inertia_compare.items()
+                },
             }
         )
 
@@ -429,20 +459,36 @@ def analyze_study(
         rec = records[t.index]
         cells.setdefault((rec.subject, rec.condition), []).append(t)
 
-    per_cell: list[SubjectConditionResult] = []
+    cell_frfs: list[tuple[str, str, list[TrialAnalysis], FrequencyResponse]] = []
     for (subj, cond), items in sorted(
         cells.items(), key=lambda kv: (kv[0][0], _condition_key(kv[0][1]))
     ):
         items.sort(key=lambda t: records[t.index].repetition)
-        label = f"{subj} {cond}"
         try:
             frf = frequency_response([t.spectra for t in items])
         except ValueError as e:
-            notes.append(f"{label}: repetitions not combined, left out: {e}")
+            notes.append(f"{subj} {cond}: repetitions not combined, left out: {e}")
             continue
+        cell_frfs.append((subj, cond, items, frf))
+
+    # Arm fits: one joint fit per subject over its conditions (one shared I_i), or per cell.
+    by_subject: dict[str, list[tuple[str, FrequencyResponse]]] = {}
+    for subj, cond, _, frf in cell_frfs:
+        by_subject.setdefault(subj, []).append((cond, frf))
+    fits, inertia = _fit_sets(by_subject, opt.fit, notes)
+    fits_cmp: dict[tuple[str, str], ArmFit | str] = {}
+    inertia_cmp: dict[str, JointArmFit] = {}
+    if opt.compare_weightings:
+        fits_cmp, inertia_cmp = _fit_sets(by_subject, opt.comparison_fit, [])
+
+    per_cell: list[SubjectConditionResult] = []
+    for subj, cond, items, frf in cell_frfs:
+        label = f"{subj} {cond}"
         fit, fit_error = None, None
-        try:
-            fit = fit_arm(frf, opt.fit)
+        got = fits[(subj, cond)]
+        if isinstance(got, str):
+            fit_error = got
+        else:
             segments = [
                 (
                     t.spectra.selection.segment(records[t.index].driver_torque_Nm),
@@ -451,10 +497,8 @@ def analyze_study(
                 for t in items
             ]
             rates = [records[t.index].fs_hz for t in items]
-            fit = fit.with_vaf(vaf_percent(fit.params, segments, rates))
-        except ValueError as e:
-            fit_error = str(e)
-            notes.append(f"{label}: no arm fit: {e}")
+            fit = got.with_vaf(vaf_percent(got.params, segments, rates))
+        cmp = fits_cmp.get((subj, cond))
         per_cell.append(
             SubjectConditionResult(
                 subject=subj,
@@ -465,34 +509,45 @@ def analyze_study(
                 fit=fit,
                 grip=GripMoments.pool([t.grip for t in items]),
                 fit_error=fit_error,
+                fit_compare=cmp if isinstance(cmp, ArmFit) else None,
             )
         )
+        if fit_error is not None:
+            notes.append(f"{label}: no arm fit: {fit_error}")
 
-    per_condition: list[ConditionResult] = []
+    groups: dict[str, GroupFrequencyResponse] = {}
     for cond in sorted({r.condition for r in per_cell}, key=_condition_key):
         rs = [r for r in per_cell if r.condition == cond]
         try:
-            group = group_frequency_response(
+            groups[cond] = group_frequency_response(
                 [r.frf for r in rs], subjects=[r.subject for r in rs], confidence=opt.confidence
             )
         except ValueError as e:
             notes.append(f"{cond}: no group result: {e}")
-            continue
-        fit, fit_error = None, None
-        try:
-            fit = fit_arm(group, opt.fit)
-        except ValueError as e:
-            fit_error = str(e)
-            notes.append(f"{cond}: no group arm fit: {e}")
+    group_sets = {"group": list(groups.items())} if groups else {}
+    gfits, ginertia = _fit_sets(group_sets, opt.fit, notes)
+    inertia.update(ginertia)
+    gfits_cmp: dict[tuple[str, str], ArmFit | str] = {}
+    if opt.compare_weightings:
+        gfits_cmp, ginertia_cmp = _fit_sets(group_sets, opt.comparison_fit, [])
+        inertia_cmp.update(ginertia_cmp)
+    per_condition: list[ConditionResult] = []
+    for cond, group in groups.items():
+        rs = [r for r in per_cell if r.condition == cond]
+        got = gfits[("group", cond)]
+        cmp = gfits_cmp.get(("group", cond))
+        if isinstance(got, str):
+            notes.append(f"{cond}: no group arm fit: {got}")
         per_condition.append(
             ConditionResult(
                 condition=cond,
                 subjects=tuple(r.subject for r in rs),
                 group_frf=group,
-                fit=fit,
+                fit=None if isinstance(got, str) else got,
                 grip_subject_means_N=np.array([r.grip_mean_N for r in rs]),
                 grip_subject_sds_N=np.array([r.grip_sd_N for r in rs]),
-                fit_error=fit_error,
+                fit_error=got if isinstance(got, str) else None,
+                fit_compare=cmp if isinstance(cmp, ArmFit) else None,
             )
         )
 
@@ -502,4 +557,40 @@ def analyze_study(
         skipped=tuple(skipped),
         options=opt,
         notes=tuple(notes),
+        inertia=inertia,
+        inertia_compare=inertia_cmp,
     )
+
+
+def _fit_sets(
+    sets: dict[str, list[tuple[str, Any]]], fopt: FitOptions, notes: list[str]
+) -> tuple[dict[tuple[str, str], ArmFit | str], dict[str, JointArmFit]]:
+    """Fit each set of responses (a subject's conditions, or the group's) with one I_i per
+    set (``fopt.inertia`` "subject"), or each response alone. Returns ``{(set, condition):
+    ArmFit or the error message}`` and the joint fits by set. A response that cannot be fitted
+    is left out of its set's joint fit, with a note, so it cannot take the others with it."""
+    out: dict[tuple[str, str], ArmFit | str] = {}
+    joints: dict[str, JointArmFit] = {}
+    for name, items in sets.items():
+        good: list[tuple[str, Any]] = []
+        for cond, est in items:
+            try:  # a response the fit cannot use at all (too few bands, no noise variance)
+                check_fittable(est, fopt)
+            except ValueError as e:
+                out[(name, cond)] = str(e)
+                continue
+            good.append((cond, est))
+        if not good:
+            continue
+        try:
+            joint = fit_arm_joint([e for _, e in good], fopt, labels=[c for c, _ in good])
+        except (ValueError, np.linalg.LinAlgError) as e:
+            for cond, _ in good:
+                out[(name, cond)] = f"joint fit of {name} failed: {e}"
+            notes.append(f"{name}: joint arm fit failed: {e}")
+            continue
+        for cond, fit in joint.by_label().items():
+            out[(name, cond)] = fit
+        if joint.mode == "subject" or (fopt.inertia == "subject" and len(good) == 1):
+            joints[name] = joint
+    return out, joints

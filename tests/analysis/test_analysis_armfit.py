@@ -25,6 +25,8 @@ ARMS = {
     "PT": {"I_i": 0.1, "b_i": 1.0, "k_i": 50.0, "b_c": 4.2, "k_c": 230.0},
 }
 FREE = ("b_i", "k_i", "b_c", "k_c")
+ALL = ("I_i",) + FREE
+FIXED_I = FitOptions(inertia="fixed")
 
 
 def frf_of(rec):
@@ -42,9 +44,23 @@ def test_arm_admittance_limits():
 
 @pytest.mark.parametrize("name", sorted(ARMS))
 def test_noise_free_fit_recovers_the_parameters(name):
+    # Default options: inverse-variance (maximum-likelihood) weights, I_i fitted.
     arm = ARMS[name]
     frf, _ = frf_of(make_trial(arm, fs_hz=200.0, run_in_s=2.0))
     fit = fit_arm(frf)
+    assert fit.success and fit.free == ALL and fit.sem_method == "noise"
+    for n in ALL:
+        assert getattr(fit.params, n) == pytest.approx(arm[n], rel=1e-5), n
+    assert fit.fit_percent == pytest.approx(100.0, abs=1e-8)
+    assert len(fit.frequencies_hz) == 29  # the two lowest bands left out
+    assert fit.frequencies_hz.min() > frf.frequencies_hz[1]
+
+
+@pytest.mark.parametrize("name", sorted(ARMS))
+def test_noise_free_fit_with_inertia_held_recovers_the_others(name):
+    arm = ARMS[name]
+    frf, _ = frf_of(make_trial(arm, fs_hz=200.0, run_in_s=2.0))
+    fit = fit_arm(frf, FIXED_I)
     assert fit.success and fit.free == FREE and fit.sem_method == "noise"
     for n in FREE:
         assert getattr(fit.params, n) == pytest.approx(arm[n], rel=1e-6), n
@@ -57,7 +73,7 @@ def test_noise_free_fit_recovers_the_parameters(name):
 def test_noise_free_fit_with_free_inertia():
     arm = dict(ARM, I_i=0.07)
     frf, _ = frf_of(make_trial(arm, fs_hz=200.0, run_in_s=2.0))
-    fit = fit_arm(frf, FitOptions(fit_inertia=True))
+    fit = fit_arm(frf, FitOptions(inertia="free"))
     assert fit.free == ("I_i",) + FREE
     for n in ("I_i",) + FREE:
         assert getattr(fit.params, n) == pytest.approx(arm[n], rel=1e-5), n
@@ -66,7 +82,7 @@ def test_noise_free_fit_with_free_inertia():
 def test_fit_at_band_centres_is_close_but_biased():
     # The paper's reading (H at each band's mean frequency) costs about a percent on b_c.
     frf, _ = frf_of(make_trial(fs_hz=200.0, run_in_s=2.0))
-    fit = fit_arm(frf, FitOptions(band_mixing=False))
+    fit = fit_arm(frf, FitOptions(band_mixing=False, inertia="fixed"))
     for n in FREE:
         assert getattr(fit.params, n) == pytest.approx(ARM[n], rel=0.03), n
     assert fit.fit_percent > 99.9
@@ -92,17 +108,19 @@ def test_standard_errors_match_a_monte_carlo_spread():
             seed=seed,
         )  # fmt: skip
         fit = fit_arm(frf_of(rec)[0])
-        est.append([getattr(fit.params, n) for n in FREE])
-        sem.append([fit.sems[n] for n in FREE])
-        sem_res.append([fit.sems_residual[n] for n in FREE])
+        est.append([getattr(fit.params, n) for n in ALL])
+        sem.append([fit.sems[n] for n in ALL])
+        sem_res.append([fit.sems_residual[n] for n in ALL])
     est, sem, sem_res = np.array(est), np.array(sem), np.array(sem_res)
     spread = est.std(axis=0, ddof=1)
     predicted = np.sqrt(np.mean(sem**2, axis=0))
     ratio = spread / predicted
-    assert np.all((ratio > 0.6) & (ratio < 1.6)), dict(zip(FREE, ratio, strict=True))
-    # No bias beyond the spread: mean within 3 standard errors of the mean of the truth.
-    truth = np.array([ARM[n] for n in FREE])
-    assert np.all(np.abs(est.mean(0) - truth) < 3 * spread / np.sqrt(20) + 1e-12)
+    assert np.all((ratio > 0.6) & (ratio < 1.6)), dict(zip(ALL, ratio, strict=True))
+    # No bias beyond the spread: mean within 3 standard errors of the mean of the truth, plus
+    # 1.5 % for the maximum-likelihood fit's finite-sample bias (over 100 seeds of this trial:
+    # b_i +0.87 ± 0.29 %, the others within ±0.3 %).
+    truth = np.array([ARM[n] for n in ALL])
+    assert np.all(np.abs(est.mean(0) - truth) < 3 * spread / np.sqrt(20) + 0.015 * truth)
     # The residual-based (paper's) bound is kept for comparison; it is right within a factor 2.
     ratio_res = spread / np.sqrt(np.mean(sem_res**2, axis=0))
     assert np.all((ratio_res > 0.4) & (ratio_res < 2.5)), ratio_res
@@ -162,8 +180,11 @@ def test_to_dict_is_json_with_units():
     assert set(d["params"]) == {
         "I_i_kgm2", "b_i_Nms_per_rad", "k_i_Nm_per_rad", "b_c_Nms_per_rad", "k_c_Nm_per_rad"
     }  # fmt: skip
-    assert d["fixed"] == ["I_i_kgm2"] and d["vaf_percent"] == 90.0
+    assert d["fixed"] == [] and d["vaf_percent"] == 90.0
+    assert d["options"]["inertia"] == "subject" and d["options"]["weighting"] == "inverse_variance"
+    assert fit_arm(frf, FIXED_I).to_dict()["fixed"] == ["I_i_kgm2"]
     assert set(d["sem"]) == {
+        "I_i_kgm2",
         "b_i_Nms_per_rad",
         "k_i_Nm_per_rad",
         "b_c_Nms_per_rad",
