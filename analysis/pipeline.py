@@ -38,7 +38,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats as sps
 
-from analysis.armfit import BOUNDS, ArmFit
+from analysis.armfit import ArmFit
 from analysis.lpv import (
     DEFAULT_EXCLUSIONS,
     METHODS,
@@ -119,6 +119,9 @@ class InputFile:
     simulated: bool
     n_trials: int
     wheel: dict[str, float] | None = None  # [wheel] of the protocol the file was recorded with
+    # Simulated files: condition → the simulated subject's arm parameters (its base behaviour
+    # per condition; each trial varies around it by PopulationSpread.trial_cv).
+    simulated_truth: dict[str, dict[str, float]] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -168,6 +171,7 @@ def load_directory(
                 simulated=bool(a.get("simulated", False)),
                 n_trials=len(recs),
                 wheel=_wheel_of(a.get("protocol_toml")),
+                simulated_truth=_truth_of(a.get("simulated_subject")),
             )
         )
         if progress is not None:
@@ -189,6 +193,27 @@ def _wheel_of(protocol_toml: Any) -> dict[str, float] | None:
     if not isinstance(wheel, dict):
         return None
     return {str(k): float(v) for k, v in wheel.items() if isinstance(v, int | float)}
+
+
+def _truth_of(simulated_subject: Any) -> dict[str, dict[str, float]] | None:
+    """The simulated subject's arm per condition, if the attribute can be read."""
+    import json
+
+    if isinstance(simulated_subject, bytes):
+        simulated_subject = simulated_subject.decode("utf-8", "replace")
+    if isinstance(simulated_subject, str):
+        try:
+            simulated_subject = json.loads(simulated_subject)
+        except json.JSONDecodeError:
+            return None
+    if not isinstance(simulated_subject, dict):
+        return None
+    out = {}
+    for cond, b in (simulated_subject.get("behaviour") or {}).items():
+        arm = b.get("arm") if isinstance(b, dict) else None
+        if isinstance(arm, dict):
+            out[str(cond)] = {k: float(v) for k, v in arm.items() if isinstance(v, int | float)}
+    return out or None
 
 
 def _str_or_none(v: Any) -> str | None:
@@ -830,27 +855,56 @@ def _lpv_checks(lpv: LPVAnalysis | None, loo_vaf: Sequence[LeaveOneOutVAF]) -> l
 def parameters_at_bound(fit: ArmFit) -> list[str]:
     """Free parameters that ended within 1 % of the fit's search box (analysis.armfit.BOUNDS):
     the data did not determine them, whatever their SEM says."""
-    out = []
-    for n in fit.free:
-        lo, hi = BOUNDS[n]
-        v = getattr(fit.params, n)
-        if v <= lo * 1.01 or v >= hi / 1.01:
-            out.append(n)
-    return out
+    return fit.at_bound()
 
 
-def _parameter_dict(fit: ArmFit) -> dict[str, Any]:
-    bound = parameters_at_bound(fit)
-    return {
-        n: {
+def _parameter_dict(fit: ArmFit, truth: Mapping[str, float] | None = None) -> dict[str, Any]:
+    bound = fit.at_bound()
+    unid = fit.unidentified()
+    out = {}
+    for n, v in fit.params.as_dict().items():
+        d = {
             "value": v,
             "sem": fit.sems.get(n),
             "unit": PARAMETER_UNITS[n],
             "fixed": n not in fit.free,
             "at_bound": n in bound,
+            "unidentified": n in unid,
         }
-        for n, v in fit.params.as_dict().items()
-    }
+        if truth is not None and n in truth:
+            d["simulated_truth"] = float(truth[n])
+        out[n] = d
+    return out
+
+
+# The rule for estimates the data do not determine (ArmFit.unidentified: at a search bound, or
+# SEM ≥ value): they are flagged where they appear and left out of the statistics, so one
+# wild value cannot carry a condition's mean (RM-ANOVA needs complete subjects, so that
+# subject drops out of that parameter's tests).
+UNIDENTIFIED_RULE = (
+    "estimates at a search bound or with SEM ≥ value are flagged and left out of the "
+    "statistics (the subject drops out of that parameter's repeated-measures tests)"
+)
+WEIGHTING_DISAGREEMENT_SEMS = 2.0  # |default − other| > this × the larger SEM: "disagree"
+INERTIA_POORLY_DETERMINED = 0.3  # relative SEM of a subject's I_i above which we say so
+
+
+def statistics_table(study: StudyAnalysis) -> tuple[pd.DataFrame, list[str]]:
+    """The subject × condition table the statistics use, unidentified estimates blanked out
+    (``UNIDENTIFIED_RULE``), and what was left out, as "S03 BT5: k_c"."""
+    rows = study.table()
+    left_out = []
+    for r, cell in zip(rows, study.subject_conditions, strict=True):
+        if cell.fit is None:
+            continue
+        bad = cell.fit.unidentified()
+        for n in bad:
+            col = STAT_QUANTITIES.get(n, (None,))[0]
+            if col is not None and col in r:
+                r[col] = float("nan")
+        if bad:
+            left_out.append(f"{cell.subject} {cell.condition}: {', '.join(bad)}")
+    return pd.DataFrame(rows), left_out
 
 
 @dataclass
@@ -868,6 +922,126 @@ class StudyResults:
     checks: list[Check]
     provenance: dict[str, Any]
     timings_s: dict[str, float] = field(default_factory=dict)
+    left_out_of_statistics: list[str] = field(default_factory=list)
+    # Simulated studies: subject → condition → true arm parameters (from the session files).
+    simulated_truth: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
+
+    @property
+    def simulated(self) -> bool:
+        files = self.provenance.get("input_files") or []
+        return bool(files) and all(f.get("simulated") for f in files)
+
+    def truth(self, subject: str, condition: str) -> dict[str, float] | None:
+        return self.simulated_truth.get(subject, {}).get(condition)
+
+    def inertia_dict(self) -> dict[str, Any]:
+        """What the data say about I_i: per subject (joint fit) and for the group fits."""
+        opt = self.study.options.fit
+        d: dict[str, Any] = {"mode": opt.inertia, "held_value_kgm2": None}
+        if opt.inertia == "fixed":
+            d["held_value_kgm2"] = opt.I_i
+        per = {}
+        for name, j in self.study.inertia.items():
+            sens = {}
+            for lab, fit in j.by_label().items():
+                sens[lab] = {
+                    f"{n}_percent_per_10_percent_I_i": (
+                        100.0 * (0.1 * j.I_i * v) / getattr(fit.params, n)
+                    )
+                    for n, v in fit.inertia_sensitivity.items()
+                }
+            rel = None if j.I_i_sem is None or j.I_i <= 0 else j.I_i_sem / j.I_i
+            per[name] = {
+                "I_i_kgm2": j.I_i,
+                "I_i_sem_kgm2": j.I_i_sem,
+                "relative_sem": rel,
+                "poorly_determined": rel is None
+                or not math.isfinite(rel)
+                or rel > INERTIA_POORLY_DETERMINED,
+                "conditions": list(j.labels),
+                "sensitivity": sens,
+                "profile_I_kgm2": list(j.profile_I),
+                "profile_cost": list(j.profile_cost),
+            }
+        d["fits"] = per
+        subj = [v["I_i_kgm2"] for k, v in per.items() if k != "group"]
+        d["median_over_subjects_kgm2"] = float(np.median(subj)) if subj else None
+        return d
+
+    def weighting_comparison(self) -> dict[str, Any]:
+        """Default and other weighting side by side, per subject × condition and group."""
+        main = self.study.options.fit.weighting
+        other = self.study.options.comparison_fit.weighting
+        rows = []
+        items = [
+            (r.subject, r.condition, r.fit, r.fit_compare) for r in self.study.subject_conditions
+        ]
+        items += [("group", c.condition, c.fit, c.fit_compare) for c in self.study.conditions]
+        for subj, cond, a, b in items:
+            if a is None or b is None:
+                continue
+            row: dict[str, Any] = {
+                "subject": subj,
+                "condition": cond,
+                f"fit_percent_{main}": a.fit_percent,
+                f"fit_percent_{other}": b.fit_percent,
+                "parameters": {},
+                "disagree": [],
+            }
+            for n in a.free:
+                va, vb = getattr(a.params, n), getattr(b.params, n)
+                sa, sb = a.sems.get(n, float("nan")), b.sems.get(n, float("nan"))
+                row["parameters"][n] = {main: va, f"{main}_sem": sa, other: vb, f"{other}_sem": sb}
+                lim = WEIGHTING_DISAGREEMENT_SEMS * np.nanmax([sa, sb])
+                if math.isfinite(lim) and abs(va - vb) > lim:
+                    row["disagree"].append(n)
+            rows.append(row)
+        return {
+            "default": main,
+            "other": other,
+            "rule": f"disagree: |difference| > {WEIGHTING_DISAGREEMENT_SEMS:g} × the larger SEM",
+            "cells": rows,
+        }
+
+    def warnings(self) -> list[str]:
+        """What a reader must know before trusting the numbers (shown at the top)."""
+        out = []
+        if self.simulated:
+            out.append("This study is SIMULATED (Steerlab's simulated rig), not measured data.")
+        if self.left_out_of_statistics:
+            out.append(
+                f"{len(self.left_out_of_statistics)} estimate(s) the data do not determine "
+                f"(at a search bound, or SEM ≥ value): {'; '.join(self.left_out_of_statistics)}."
+                f" Rule: {UNIDENTIFIED_RULE}."
+            )
+        groups_bad = [
+            f"{c.condition}: {', '.join(c.fit.unidentified())}"
+            for c in self.study.conditions
+            if c.fit is not None and c.fit.unidentified()
+        ]
+        if groups_bad:
+            out.append("group fits the data do not determine: " + "; ".join(groups_bad))
+        inert = self.inertia_dict()
+        poor = [k for k, v in inert["fits"].items() if v["poorly_determined"]]
+        if poor:
+            out.append(
+                f"I_i is poorly determined (SEM > {INERTIA_POORLY_DETERMINED:.0%} of the "
+                f"value) for: {', '.join(poor)}; see the inertia section for how much the "
+                "other parameters depend on it."
+            )
+        if self.study.options.compare_weightings:
+            dis = [
+                f"{r['subject']} {r['condition']}: {', '.join(r['disagree'])}"
+                for r in self.weighting_comparison()["cells"]
+                if r["disagree"]
+            ]
+            if dis:
+                out.append(
+                    f"{len(dis)} fit(s) where the two weightings disagree by more than "
+                    f"{WEIGHTING_DISAGREEMENT_SEMS:g} SEMs: {'; '.join(dis[:12])}"
+                    + (" …" if len(dis) > 12 else "")
+                )
+        return out
 
     @property
     def leave_one_out(self) -> LeaveOneOutReport | None:
@@ -884,7 +1058,8 @@ class StudyResults:
     def subject_condition_dicts(self) -> list[dict[str, Any]]:
         out = []
         for r in self.study.subject_conditions:
-            params = {} if r.fit is None else _parameter_dict(r.fit)
+            truth = self.truth(r.subject, r.condition)
+            params = {} if r.fit is None else _parameter_dict(r.fit, truth)
             out.append(
                 {
                     "subject": r.subject,
@@ -955,6 +1130,17 @@ class StudyResults:
         d["leave_one_out_skipped"] = self.lpv.leave_one_out_skipped
         return d
 
+    def _inertia_not_tested(self) -> str:
+        opt = self.study.options.fit
+        if opt.inertia == "fixed":
+            return f"held fixed at {opt.I_i} kg·m² in every fit; not estimated, so not tested"
+        if opt.inertia == "subject":
+            return (
+                "one value per subject, shared by all of that subject's conditions (joint fit), "
+                "so it cannot differ between conditions and is not tested"
+            )
+        return "fitted per cell; not tested (the paper holds it constant)"
+
     def to_dict(self) -> dict[str, Any]:
         return json_clean(
             {
@@ -967,14 +1153,18 @@ class StudyResults:
                 "subject_conditions": self.subject_condition_dicts(),
                 "conditions_group": self.condition_dicts(),
                 "lpv": self.lpv_dict(),
+                "warnings": self.warnings(),
+                "simulated": self.simulated,
+                "inertia": self.inertia_dict(),
+                "weighting_comparison": (
+                    self.weighting_comparison() if self.study.options.compare_weightings else None
+                ),
                 "statistics": {
                     "alpha": ALPHA,
                     "conditions": list(self.conditions),
-                    "not_tested": {
-                        "I_i": "held fixed at "
-                        f"{self.study.options.fit.I_i} kg·m² in every fit (FitOptions.I_i); "
-                        "not estimated, so not tested"
-                    },
+                    "not_tested": {"I_i": self._inertia_not_tested()},
+                    "unidentified_rule": UNIDENTIFIED_RULE,
+                    "left_out": list(self.left_out_of_statistics),
                     "quantities": {k: q.to_dict() for k, q in self.statistics.items()},
                 },
                 "checks": [c.to_dict() for c in self.checks],
@@ -994,6 +1184,7 @@ def run_analysis(
     options: AnalysisOptions | None = None,
     provenance_info: dict[str, Any] | None = None,
     stage: Callable[[str], None] | None = None,
+    simulated_truth: dict[str, dict[str, dict[str, float]]] | None = None,
 ) -> StudyResults:
     """Study → LPV → statistics → checks. ``progress`` gets one call per trial (from
     :func:`analyze_study`); ``stage(name)`` is called as each later stage starts."""
@@ -1025,7 +1216,7 @@ def run_analysis(
     if stage is not None:
         stage("statistics")
     t0 = time.perf_counter()
-    table = pd.DataFrame(study.table())
+    table, left_out = statistics_table(study)
     if table.empty:
         stats_ = {
             k: QuantityStatistics(k, col, label, unit, None, None, None, ("no analysed data",))
@@ -1048,6 +1239,8 @@ def run_analysis(
         checks=checks,
         provenance=provenance_info or provenance(None, [], opt),
         timings_s=timings,
+        left_out_of_statistics=left_out,
+        simulated_truth=simulated_truth or {},
     )
 
 
@@ -1066,6 +1259,7 @@ def analyse_directory(
     t0 = time.perf_counter()
     records, inputs = load_directory(session_dir, progress)
     t_read = time.perf_counter() - t0
+    truth = {f.subject: f.simulated_truth for f in inputs if f.simulated_truth}
     res = run_analysis(
         records,
         executor=executor,
@@ -1074,6 +1268,7 @@ def analyse_directory(
         options=opt,
         provenance_info=provenance(session_dir, inputs, opt),
         stage=stage,
+        simulated_truth=truth,
     )
     res.timings_s = {"read_files": t_read, **res.timings_s}
     return res, records

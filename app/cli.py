@@ -81,7 +81,12 @@ def _cmd_report(a: argparse.Namespace) -> int:
     from analysis.report import write_report
     from analysis.study import AnalysisOptions
 
-    options = AnalysisOptions(fit=FitOptions(weighting=a.weighting))
+    try:
+        fit = FitOptions(weighting=a.weighting, inertia=a.inertia, I_i=a.inertia_value)
+    except ValueError as e:
+        print(f"steerlab report: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    options = AnalysisOptions(fit=fit, compare_weightings=not a.no_compare)
     write_report(a.dir, a.out, jobs=a.jobs, progress=Progress("report"), options=options)
     print(f"report written to {Path(a.out) / 'index.html'}")
     return 0
@@ -157,10 +162,28 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--jobs", type=int, default=1)
     r.add_argument(
         "--weighting",
-        choices=("paper", "inverse_variance"),
-        default="paper",
-        help="arm-fit weights: the paper's coherence × 1/f (default), or 1/var(Ĥ), which "
-        "determines the contact parameters far better (docs/benchmarks.md)",
+        choices=("inverse_variance", "paper"),
+        default="inverse_variance",
+        help="arm-fit weights: 1/var(Ĥ) from the noise smoothed across frequency (default: "
+        "maximum likelihood, docs/method-estimator.md) or the paper's coherence × 1/f",
+    )
+    r.add_argument(
+        "--inertia",
+        choices=("subject", "free", "fixed"),
+        default="subject",
+        help="I_i: one per subject shared by its conditions (default), one per fit, or held "
+        "at --inertia-value",
+    )
+    r.add_argument(
+        "--inertia-value",
+        type=float,
+        default=0.1,
+        help="I_i in kg·m² when --inertia fixed (default 0.1)",
+    )
+    r.add_argument(
+        "--no-compare",
+        action="store_true",
+        help="skip the second fit with the other weighting (the side-by-side table)",
     )
     r.set_defaults(func=_cmd_report)
 
