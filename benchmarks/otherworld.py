@@ -677,6 +677,7 @@ class StudyOptions:
     mechanisms: list = field(default_factory=list)
     integrator: str = "auto"
     perturbation_seed: int | None = None  # default: from the study seed
+    period_s: float = 45.0  # the perturbation's period (shorter only for fast tests)
 
 
 def _subject_arms(rng, conditions, opts: StudyOptions) -> tuple[float, dict]:
@@ -759,7 +760,7 @@ def generate_study(
     pert_seed = opts.perturbation_seed
     if pert_seed is None:
         pert_seed = int(ss.generate_state(1)[0])
-    design = Multisine.design(pert_seed)
+    design = Multisine.design(pert_seed, period_s=opts.period_s)
     drift = next((m for m in opts.mechanisms if m["kind"] == "drift"), None)
     truth = {
         "world": "benchmarks.otherworld",
