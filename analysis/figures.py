@@ -183,19 +183,24 @@ def admittance(res: StudyResults) -> Figure:
 
 
 def parameter_boxplots(res: StudyResults) -> Figure:
-    """Per-subject estimates with their SEMs, and the group fit ± SEM, per condition."""
+    """Per-subject estimates with their SEMs, and the group fit ± SEM, per condition; I_i per
+    subject. Estimates the data do not determine (``ArmFit.unidentified``) stay out of the
+    boxes and the axis range, drawn as red × at the edge, so one wild value cannot squash the
+    rest (they are also left out of the statistics)."""
     conds = list(res.conditions)
     colours = condition_colours(conds)
-    fig = new_figure(10, 7.5)
-    axes = fig.subplots(2, 2).ravel()
+    fig = new_figure(12, 7.5)
+    axes = fig.subplots(2, 3).ravel()
     group = {c.condition: c.fit for c in res.study.conditions}
     rng = np.random.default_rng(1)
-    for ax, name in zip(axes, FREE_PARAMETERS, strict=True):
-        data, sems = [], []
+    for ax, name in zip(axes, FREE_PARAMETERS, strict=False):
+        data, sems, wild = [], [], []
         for cond in conds:
             rows = [r for r in res.study.subject_conditions if r.condition == cond and r.fit]
-            data.append([getattr(r.fit.params, name) for r in rows])
-            sems.append([r.fit.sems.get(name, np.nan) for r in rows])
+            ok = [r for r in rows if name not in r.fit.unidentified()]
+            data.append([getattr(r.fit.params, name) for r in ok])
+            sems.append([r.fit.sems.get(name, np.nan) for r in ok])
+            wild.append(len(rows) - len(ok))
         _boxes_plain(ax, data, conds, colours)
         for i, (vals, ss) in enumerate(zip(data, sems, strict=True), 1):
             v, s = np.asarray(vals, float), np.asarray(ss, float)
@@ -207,7 +212,7 @@ def parameter_boxplots(res: StudyResults) -> Figure:
         gx, gy, gs = [], [], []
         for i, cond in enumerate(conds, 1):
             fit = group.get(cond)
-            if fit is not None:
+            if fit is not None and name not in fit.unidentified():
                 gx.append(i + 0.3)
                 gy.append(getattr(fit.params, name))
                 gs.append(fit.sems.get(name, np.nan))
@@ -224,10 +229,86 @@ def parameter_boxplots(res: StudyResults) -> Figure:
             label="group fit ± SEM",
         )
         ax.set_yscale("log")
+        top = ax.get_ylim()[1]
+        for i, n in enumerate(wild, 1):
+            if n:
+                ax.plot([i], [top], "x", color="red", ms=7, clip_on=False, zorder=5)
+                ax.annotate(f"{n}", (i, top), xytext=(4, -10), textcoords="offset points",
+                            color="red", fontsize=7)  # fmt: skip
         ax.set_title(f"{name} ({PARAMETER_UNITS[name]})")
         ax.grid(axis="y", which="both", alpha=0.25)
     axes[0].legend(fontsize=8, loc="upper left")
-    fig.suptitle("Arm parameters: subjects (boxes; grey: estimate ± SEM), group fit ± SEM")
+    _inertia_panel(axes[len(FREE_PARAMETERS)], res)
+    for ax in axes[len(FREE_PARAMETERS) + 1 :]:
+        ax.set_visible(False)
+    fig.suptitle(
+        "Arm parameters: subjects (boxes; grey: estimate ± SEM), group fit ± SEM; "
+        "red ×: estimates the data do not determine (count), left out"
+    )
+    return fig
+
+
+def _inertia_panel(ax, res: StudyResults) -> None:
+    fits = {k: v for k, v in res.study.inertia.items() if k != "group"}
+    opt = res.study.options.fit
+    if not fits:
+        held = f"held at {opt.I_i:g} kg·m²" if opt.inertia == "fixed" else "fitted per cell"
+        ax.text(0.5, 0.5, f"I_i {held}", ha="center", va="center", transform=ax.transAxes)
+        ax.set_axis_off()
+        return
+    names = sorted(fits)
+    v = np.array([fits[n].I_i for n in names])
+    s = np.array([fits[n].I_i_sem if fits[n].I_i_sem is not None else np.nan for n in names])
+    x = np.arange(1, len(names) + 1)
+    ax.errorbar(x, v, yerr=s, fmt="o", ms=4, color="0.2", capsize=2)
+    g = res.study.inertia.get("group")
+    if g is not None:
+        ax.axhline(g.I_i, color="black", lw=1, ls="--", label=f"group fit {g.I_i:.3g}")
+        ax.legend(fontsize=8, loc="upper left")
+    ax.set_xticks(x, names, rotation=90, fontsize=7)
+    ax.set_title("I_i (kg·m²), one per subject ± SEM")
+    ax.grid(axis="y", alpha=0.25)
+
+
+def subject_admittance(res: StudyResults) -> Figure | None:
+    """Each subject's admittance magnitude per condition (dots: Ĥ; lines: the subject's fit)."""
+    subjects = list(res.subjects)
+    if not subjects:
+        return None
+    conds = list(res.conditions)
+    colours = condition_colours(conds)
+    ncol = min(6, len(subjects))
+    nrow = int(np.ceil(len(subjects) / ncol))
+    fig = new_figure(2.1 * ncol + 0.6, 1.9 * nrow + 0.9)
+    axes = np.atleast_1d(fig.subplots(nrow, ncol, sharex=True, sharey=True)).ravel()
+    n_low = res.study.options.fit.n_exclude_low
+    for ax, subj in zip(axes, subjects, strict=False):
+        for r in res.study.subject_conditions:
+            if r.subject != subj:
+                continue
+            col = colours[r.condition]
+            f = r.frf.frequencies_hz
+            low = np.argsort(f)[:n_low]
+            ax.plot(f, r.frf.magnitude, "o", ms=1.8, color=col)
+            ax.plot(f[low], r.frf.magnitude[low], "o", ms=1.8, mfc="none", color=col)
+            if r.fit is not None:
+                ff = _fine_grid(f)
+                ax.plot(ff, np.abs(arm_admittance(r.fit.params, ff)), "-", lw=0.9, color=col)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_title(subj, fontsize=8)
+        ax.tick_params(labelsize=6)
+        ax.grid(which="both", alpha=0.2)
+    for ax in axes[len(subjects) :]:
+        ax.set_visible(False)
+    handles = [axes[0].plot([], [], "-o", ms=3, color=colours[c], label=c)[0] for c in conds]
+    fig.suptitle("Admittance per subject: Ĥ (dots; hollow: left out of the fit) and fit (lines)")
+    for ax in axes[max(0, len(subjects) - ncol) : len(subjects)]:
+        ax.set_xlabel("frequency (Hz)", fontsize=7)
+    fig.supylabel("|H| (rad/N·m)", fontsize=8)
+    fig.legend(
+        handles=handles, ncol=len(conds), fontsize=8, loc="outside lower center", frameon=False
+    )
     return fig
 
 

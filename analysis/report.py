@@ -34,9 +34,11 @@ import numpy as np
 
 from analysis.pipeline import (
     ALPHA,
+    INERTIA_POORLY_DETERMINED,
     PAPER_TABLE2,
     PARAMETER_UNITS,
     STAT_QUANTITIES,
+    WEIGHTING_DISAGREEMENT_SEMS,
     StudyResults,
     analyse_directory,
     json_clean,
@@ -60,6 +62,7 @@ FIGURES = (
     "time_signals",
     "grip",
     "admittance",
+    "subject_admittance",
     "parameters",
     "lpv_parameters",
     "lpv_responses",
@@ -338,6 +341,7 @@ def render_figures(
         ),
         "grip": lambda: F.grip_boxplots(res),
         "admittance": lambda: F.admittance(res),
+        "subject_admittance": lambda: F.subject_admittance(res),
         "parameters": lambda: F.parameter_boxplots(res),
         "lpv_parameters": lambda: F.lpv_parameters(res),
         "lpv_responses": lambda: F.lpv_responses(res),
@@ -370,6 +374,8 @@ th{background:#f3f3f3}td.l,th.l{text-align:left}
 figure{margin:1em 0}figure img{max-width:100%;border:1px solid #eee}
 figcaption{font-size:.9em;color:#444}
 .small{font-size:.85em}code{background:#f5f5f5;padding:0 .2em}
+.warn{background:#fff4d6;border:1px solid #e0b040;padding:.4em 1em;margin:1em 0}
+.bad{color:#b00020;font-weight:600}
 """
 
 
@@ -459,6 +465,7 @@ def html_page(
         f"{len(res.study.skipped)} trials skipped. "
         f"The paper's findings: {n_ok} agree, {n_diff} differ, "
         f"{len(res.checks) - n_ok - n_diff} not computed.</p>",
+        _warnings(res),
         _contents(images),
         _how_to_read(res),
         _key_numbers(res, records),
@@ -483,11 +490,19 @@ def html_page(
         ),
         _figure(
             images,
+            "subject_admittance",
+            "Every subject's admittance magnitude per condition: the estimate Ĥ (dots) and "
+            "the subject's own arm-model fit (lines).",
+        ),
+        _figure(
+            images,
             "parameters",
             "Arm-model parameters per condition (log scale). Boxes: the subjects' "
-            "estimates; grey bars: each estimate ± its SEM (Cramér–Rao bound from the "
-            "measured variance of Ĥ, sandwich form, see analysis/armfit.py); black: the "
-            "group fit ± SEM. I_i is held fixed and not shown.",
+            "estimates; grey bars: each estimate ± its SEM (Cramér–Rao bound of the fit, "
+            "from the measured noise of Ĥ, see docs/method-estimator.md); black: the group "
+            "fit ± SEM; red ×: estimates the data do not determine (at a search bound or "
+            "SEM ≥ value), counted and left out of boxes and statistics. Last panel: I_i, one "
+            "per subject (joint fit over its conditions).",
         ),
         _figure(
             images,
@@ -504,6 +519,9 @@ def html_page(
             "domain). Thick grey: the point's own local LTI model.",
         ),
         _condition_table(res),
+        _truth_section(res),
+        _inertia_section(res),
+        _weighting_section(res),
         _table2(res),
         _loo_table(res),
         _anova_table(res),
@@ -527,6 +545,8 @@ def _contents(images: dict[str, str | None]) -> str:
         items.append(("figures", "Figures"))
     items += [
         ("conditions", "Per condition"),
+        ("inertia", "Inertia"),
+        ("weighting", "Two weightings"),
         ("table2", "Table 2"),
         ("loo", "Leave-one-out"),
         ("anova", "RM-ANOVA"),
@@ -546,9 +566,10 @@ def _how_to_read(res: StudyResults) -> str:
 on the hands. High = relaxed arms, low = stiff arms. It is estimated from the closed loop with the
 perturbation torque as instrument, per double frequency band.</li>
 <li><b>Arm model</b>: contact (b<sub>c</sub>, k<sub>c</sub>) in series with the intrinsic arm
-(I<sub>i</sub>, b<sub>i</sub>, k<sub>i</sub>). I<sub>i</sub> is held fixed at
-{_num(res.study.options.fit.I_i)} kg·m², so it has no SEM and is not tested.
-<b>SEM</b> = standard error of an estimate; {pct} % intervals on FRFs are across subjects.</li>
+(I<sub>i</sub>, b<sub>i</sub>, k<sub>i</sub>). {_e(_inertia_sentence(res))}
+<b>SEM</b> = standard error of an estimate (Cramér–Rao bound of the fit actually used);
+{pct} % intervals on FRFs are across subjects.</li>
+<li><b>Fit</b>: {_e(_weighting_sentence(res))}</li>
 <li><b>VAF</b> (time domain) and <b>FIT%</b> (frequency domain, 1/f-weighted): 100 % is a perfect
 model. VAF uses the measured driver torque as the model's input.</li>
 <li><b>μ</b>: the median over subjects of their mean total grip force in a condition; the LPV
@@ -609,13 +630,25 @@ def _key_numbers(res: StudyResults, records: Sequence[TrialRecord]) -> str:
                 f"{_num(wheel.get('stiffness_Nm_per_rad'))} N·m/rad",
             )
         )
+    inert = res.inertia_dict()
     rows += [
-        ("I_i", "held constant (value not given)", f"held at {_num(fit.I_i)} kg·m²"),
+        (
+            "I_i",
+            "held constant (value not given)",
+            f"held at {_num(fit.I_i)} kg·m²"
+            if fit.inertia == "fixed"
+            else (
+                "one per subject, shared by its conditions; median "
+                f"{_num(inert['median_over_subjects_kgm2'])} kg·m²"
+                if fit.inertia == "subject"
+                else "fitted per subject × condition"
+            ),
+        ),
         ("bands left out of the fits", "the two lowest", f"the {fit.n_exclude_low} lowest"),
         (
             "fit weights",
             "coherence × 1/f",
-            "1/var(Ĥ) (inverse variance, from the unexcited bins)"
+            "1/var(Ĥ): maximum likelihood, noise from the unexcited bins smoothed across frequency"
             if fit.weighting == "inverse_variance"
             else ("coherence" if fit.coherence_weighting else "1")
             + (" × 1/f" if fit.frequency_weighting else ""),
@@ -670,6 +703,180 @@ def _checks_section(res: StudyResults) -> str:
         "<p>Each row restates one finding of Pronker et al. (2017) and decides it from this "
         "study's numbers with the test shown; nothing here is copied from the paper.</p>"
         + _table(["result", "paper", "test", "values"], rows, left=4)
+    )
+
+
+def _inertia_sentence(res: StudyResults) -> str:
+    fit = res.study.options.fit
+    if fit.inertia == "fixed":
+        return f"I_i is held fixed at {_num(fit.I_i)} kg·m², so it has no SEM and is not tested."
+    if fit.inertia == "subject":
+        return (
+            "I_i is estimated from the data: one value per subject, shared by all of that "
+            "subject's conditions (a joint fit); it has an SEM but is not tested across "
+            "conditions (see Inertia)."
+        )
+    return "I_i is fitted separately for every subject × condition."
+
+
+def _weighting_sentence(res: StudyResults) -> str:
+    fit = res.study.options.fit
+    if fit.weighting == "inverse_variance":
+        main = (
+            "maximum likelihood in the frequency domain: each band weighted by 1/var(Ĥ), the "
+            "noise measured at the unexcited bins and smoothed across frequency (the default)"
+        )
+    else:
+        main = "the paper's weighting, coherence × 1/f"
+    other = (
+        " The same fits with the other weighting are shown beside them (Two weightings)."
+        if res.study.options.compare_weightings
+        else ""
+    )
+    return f"{main}; the {fit.n_exclude_low} lowest bands are left out.{other}"
+
+
+def _warnings(res: StudyResults) -> str:
+    items = res.warnings()
+    if not items:
+        return ""
+    lis = "".join(f"<li>{_e(w)}</li>" for w in items)
+    return f'<div class="warn"><b>Read this first</b><ul>{lis}</ul></div>'
+
+
+def _truth_section(res: StudyResults) -> str:
+    if not res.simulated_truth:
+        return ""
+    rows = []
+    for cond in res.conditions:
+        cells = [r for r in res.study.subject_conditions if r.condition == cond and r.fit]
+        row = [_e(cond)]
+        for n in ("I_i", "b_i", "k_i", "b_c", "k_c"):
+            est, tru = [], []
+            for r in cells:
+                t = res.truth(r.subject, cond)
+                if t and n in t:
+                    est.append(getattr(r.fit.params, n))
+                    tru.append(t[n])
+            if not est:
+                row.append("–")
+                continue
+            err = 100 * (np.asarray(est) / np.asarray(tru) - 1)
+            row.append(
+                f"{_num(float(np.median(est)))} / {_num(float(np.median(tru)))} "
+                f"({float(np.median(np.abs(err))):.1f} %)"
+            )
+        rows.append(row)
+    header = ["condition", "I_i", "b_i", "k_i", "b_c", "k_c"]
+    return (
+        '<h2 id="truth">Recovered parameters and the simulated truth</h2>'
+        "<p>This study is simulated: each cell shows the median over subjects of the "
+        "estimate / of the simulated subject's true value (median |error| over subjects). "
+        "Each trial varies around the subject's value by a few per cent "
+        "(PopulationSpread.trial_cv).</p>" + _table(header, rows)
+    )
+
+
+def _inertia_section(res: StudyResults) -> str:
+    d = res.inertia_dict()
+    fit = res.study.options.fit
+    if fit.inertia == "fixed":
+        return (
+            '<h2 id="inertia">Inertia</h2>'
+            f"<p>I_i was held at {_num(fit.I_i)} kg·m² (--inertia fixed), not estimated. The "
+            "default estimates it from the data, one value per subject.</p>"
+        )
+    if not d["fits"]:
+        return '<h2 id="inertia">Inertia</h2><p>I_i was fitted per subject × condition.</p>'
+    rows = []
+    for name, v in d["fits"].items():
+        sens = v["sensitivity"]
+        med = {}
+        for q in ("k_i", "b_i", "k_c", "b_c"):
+            vals = [c.get(f"{q}_percent_per_10_percent_I_i") for c in sens.values()]
+            vals = [x for x in vals if x is not None and np.isfinite(x)]
+            med[q] = f"{float(np.median(vals)):+.1f} %" if vals else "–"
+        rel = v["relative_sem"]
+        rows.append(
+            [
+                _e(name),
+                f"{_num(v['I_i_kgm2'])} ± {_num(v['I_i_sem_kgm2'])}",
+                (
+                    f'<span class="bad">{100 * rel:.0f} %</span>'
+                    if v["poorly_determined"]
+                    else f"{100 * rel:.1f} %"
+                )
+                if rel is not None
+                else "–",  # fmt: skip
+                med["k_i"],
+                med["b_i"],
+                med["k_c"],
+                med["b_c"],
+            ]
+        )
+    header = [
+        "fit",
+        "I_i ± SEM (kg·m²)",
+        "relative SEM",
+        "k_i per +10 % I_i",
+        "b_i",
+        "k_c",
+        "b_c",
+    ]
+    return (
+        '<h2 id="inertia">Inertia: what the data say about I_i</h2>'
+        "<p>The paper holds I_i constant without giving its value. Here it is estimated: "
+        "one value per subject, shared by all of that subject's conditions (and one for the "
+        "group fits). The sensitivity columns say how much each parameter would move (median "
+        "over the conditions) if I_i were 10 % higher, from the joint fit's covariance: "
+        "what a wrong fixed inertia would do to the other estimates. A relative SEM above "
+        f"{100 * INERTIA_POORLY_DETERMINED:.0f} % is marked: the data say little about I_i "
+        "there.</p>" + _table(header, rows)
+    )
+
+
+def _weighting_section(res: StudyResults) -> str:
+    if not res.study.options.compare_weightings:
+        return ""
+    wc = res.weighting_comparison()
+    main, other = wc["default"], wc["other"]
+    rows = []
+    for c in res.study.conditions:
+        if c.fit is None or c.fit_compare is None:
+            continue
+        cells = [r for r in res.study.subject_conditions if r.condition == c.condition]
+        vaf_a = [r.vaf_percent for r in cells if r.vaf_percent is not None]
+        vaf_b = [r.vaf_compare_percent for r in cells if r.vaf_compare_percent is not None]
+        row = [_e(c.condition)]
+        for n in c.fit.free:
+            a, b = getattr(c.fit.params, n), getattr(c.fit_compare.params, n)
+            sa, sb = c.fit.sems.get(n), c.fit_compare.sems.get(n)
+            mark = (
+                ' class="bad"'
+                if sa is not None
+                and sb is not None
+                and abs(a - b) > WEIGHTING_DISAGREEMENT_SEMS * max(sa, sb)
+                else ""
+            )
+            row.append(f"<span{mark}>{_num(a)} ± {_num(sa)}<br>{_num(b)} ± {_num(sb)}</span>")
+        row += [
+            f"{_fixed(c.fit.fit_percent, 1)}<br>{_fixed(c.fit_compare.fit_percent, 1)}",
+            f"{_fixed(float(np.median(vaf_a)) if vaf_a else None, 1)}<br>"
+            f"{_fixed(float(np.median(vaf_b)) if vaf_b else None, 1)}",
+        ]
+        rows.append(row)
+    free = res.study.conditions[0].fit.free if res.study.conditions and res.study.conditions[
+        0].fit else ()  # fmt: skip
+    header = ["condition", *free, "group FIT%", "median VAF%"]
+    n_dis = sum(bool(r["disagree"]) for r in wc["cells"])
+    return (
+        '<h2 id="weighting">Two weightings side by side</h2>'
+        f"<p>Top line of each cell: the default ({_e(main)}); bottom: {_e(other)}. Group fits "
+        "per condition, with the median over subjects of their own VAF. Red: the two differ by "
+        f"more than {WEIGHTING_DISAGREEMENT_SEMS:g}× the larger SEM. Over the subject fits, "
+        f"{n_dis} of {len(wc['cells'])} cells disagree somewhere (results.json, "
+        "<code>weighting_comparison</code>). Why the default is maximum likelihood: "
+        "docs/method-estimator.md.</p>" + _table(header, rows)
     )
 
 

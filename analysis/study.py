@@ -180,6 +180,10 @@ class SubjectConditionResult:
         return None if self.fit is None else self.fit.fit_percent
 
     @property
+    def vaf_compare_percent(self) -> float | None:
+        return None if self.fit_compare is None else self.fit_compare.vaf_percent
+
+    @property
     def grip_mean_N(self) -> float:
         return self.grip.mean
 
@@ -486,19 +490,21 @@ def analyze_study(
         label = f"{subj} {cond}"
         fit, fit_error = None, None
         got = fits[(subj, cond)]
+        cmp = fits_cmp.get((subj, cond))
+        segments = [
+            (
+                t.spectra.selection.segment(records[t.index].driver_torque_Nm),
+                t.spectra.selection.segment(records[t.index].wheel_angle_rad),
+            )
+            for t in items
+        ]
+        rates = [records[t.index].fs_hz for t in items]
         if isinstance(got, str):
             fit_error = got
         else:
-            segments = [
-                (
-                    t.spectra.selection.segment(records[t.index].driver_torque_Nm),
-                    t.spectra.selection.segment(records[t.index].wheel_angle_rad),
-                )
-                for t in items
-            ]
-            rates = [records[t.index].fs_hz for t in items]
             fit = got.with_vaf(vaf_percent(got.params, segments, rates))
-        cmp = fits_cmp.get((subj, cond))
+        if isinstance(cmp, ArmFit):
+            cmp = cmp.with_vaf(vaf_percent(cmp.params, segments, rates))
         per_cell.append(
             SubjectConditionResult(
                 subject=subj,

@@ -1,46 +1,41 @@
 """How good are the per-subject arm estimates and their SEMs? A Monte-Carlo on known parameters.
 
-Each Monte-Carlo *cell* is what the study analyses per subject × condition: two measured
-repetitions of one 45-s period (after the protocol's 5-s run-in with its 1-s fade-in),
-simulated by Steerlab's own world (``hardware.sim.world.World``: wheel rendering, remnant,
-sensor noise and quantisation) with the **same** known arm parameters in both repetitions and in
-every cell, only the noise seed changing. The cells go through ``analyze_study`` like real
-data. For each parameter:
+Each Monte-Carlo *replicate* is one simulated subject as the study analyses it: every condition
+(default all six) with two measured repetitions of one 45-s period each (after the protocol's
+5-s run-in with its 1-s fade-in), simulated by Steerlab's own world (``hardware.sim.world.World``:
+wheel rendering, remnant, sensor noise and quantisation) with the **same** known arm parameters
+in every replicate, only the noise seed changing. The trials go through ``analyze_study`` with
+the default options (inverse-variance maximum-likelihood weights, one I_i per subject shared by
+its conditions), exactly as a report fits them. For each condition and parameter (I_i included):
 
-- ``bias_percent``: mean estimate / truth − 1; ``median_bias_percent`` likewise with the median
-  (the estimates of the contact parameters have heavy tails);
+- ``bias_percent``: mean estimate / truth − 1; ``median_bias_percent`` likewise with the median;
 - ``sd``: spread of the estimates; ``mean_sem``: mean reported SEM; ``sd_over_mean_sem``: near
   1 when the SEMs describe the real scatter; ``robust_sd_over_median_sem``: the same with
   1.4826·MAD and the median SEM, insensitive to the few wild estimates;
-- ``coverage_95_percent``: share of cells whose estimate ± 1.96·SEM contains the truth (95 %
-  for honest, normal errors).
+- ``coverage_95_percent``: share of replicates whose estimate ± 1.96·SEM contains the truth
+  (95 % for honest, normal errors).
 
-Default: 50 cells (100 trials) for each of RT, BT12 and PT at the simulator's nominal values.
-
-``inverse_variance`` (unless ``--no-compare``): the same cells fitted with weights 1/var(Ĥ_k)
-(the variance measured at the unexcited bins) instead of the paper's coherence × 1/f. This is
-exploratory, to show what the paper's weighting costs; it is done by handing ``fit_arm`` a
-coherence of f·median(var)/var, so that its coherence × 1/f weights become ∝ 1/var. Steerlab's
-analysis itself keeps the paper's weights.
+Goal (issue 13): ``sd_over_mean_sem`` within 0.8–1.25 and coverage within 92–98 % for every
+parameter and condition. ``paper`` (unless ``--no-compare``): the same replicates fitted with the
+paper's coherence × 1/f weights (``fit_compare``, same joint inertia), to show what they cost.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 
 import numpy as np
 
-from analysis.armfit import BOUNDS, fit_arm
-from analysis.study import analyze_study
+from analysis.armfit import BOUNDS
+from analysis.study import AnalysisOptions, analyze_study
 from benchmarks.machine import machine, peak_rss_mb
 from hardware.sim.physiology import NOMINAL, ConditionBehaviour
 from hardware.sim.world import World, WorldConfig
 from protocols.perturbation import design_multisine
 from protocols.records import TrialRecord
 
-FREE = ("b_i", "k_i", "b_c", "k_c")
+FREE = ("I_i", "b_i", "k_i", "b_c", "k_c")
 RUN_IN_S, FADE_IN_S, FADE_OUT_S = 5.0, 1.0, 1.0  # the paper protocol's trial timing
 
 
@@ -85,6 +80,9 @@ def summarise(truth: dict[str, float], est: np.ndarray, sem: np.ndarray) -> dict
         x, s, tv = est[:, j], sem[:, j], truth[name]
         ok = np.isfinite(x) & np.isfinite(s)
         x, s = x[ok], s[ok]
+        if x.size < 2:
+            out[name] = {"truth": tv, "n": int(x.size)}
+            continue
         lo, hi = BOUNDS[name]
         at_bound = int(np.sum((x <= lo * 1.01) | (x >= hi / 1.01)))
         mad = 1.4826 * np.median(np.abs(x - np.median(x)))
@@ -108,66 +106,69 @@ def summarise(truth: dict[str, float], est: np.ndarray, sem: np.ndarray) -> dict
     return out
 
 
-def _inverse_variance_fit(frf):
-    v = np.asarray(frf.H_variance, dtype=float)
-    coh = frf.frequencies_hz * np.nanmedian(v) / v  # fit_arm weights coh/f, so w ∝ 1/var
-    return fit_arm(replace(frf, coherence=coh))
+def _goal_met(summary: dict) -> bool:
+    ratio = summary.get("sd_over_mean_sem", float("nan"))
+    cover = summary.get("coverage_95_percent", float("nan"))
+    return bool(0.8 <= ratio <= 1.25 and 92.0 <= cover <= 98.0)
 
 
-def run_condition(condition: str, cells: int, fs_hz: float, seed: int, compare: bool) -> dict:
-    behaviour = NOMINAL[condition]
+def run_study(conditions: list[str], cells: int, fs_hz: float, seed: int, compare: bool) -> dict:
     design = design_multisine()
     records = []
     for c in range(cells):
         label = f"C{c:03d}"
-        for rep in (1, 2):
-            rec = simulate_trial(behaviour, design, fs_hz, [seed, c, rep], label, rep)
-            rec.condition = condition
-            records.append(rec)
-    study = analyze_study(records)
-    est = np.full((cells, len(FREE)), np.nan)
-    sem = np.full((cells, len(FREE)), np.nan)
-    est_iv = np.full_like(est, np.nan)
-    sem_iv = np.full_like(sem, np.nan)
-    failed = 0
-    for i, r in enumerate(study.subject_conditions):
-        if r.fit is None:
-            failed += 1
-            continue
-        est[i] = [getattr(r.fit.params, n) for n in FREE]
-        sem[i] = [r.fit.sems.get(n, np.nan) for n in FREE]
+        for k, cond in enumerate(conditions):
+            for rep in (1, 2):
+                rec = simulate_trial(NOMINAL[cond], design, fs_hz, [seed, c, k, rep], label, rep)
+                rec.condition = cond
+                records.append(rec)
+    study = analyze_study(records, options=AnalysisOptions(compare_weightings=compare))
+    out = {}
+    for cond in conditions:
+        rs = [r for r in study.subject_conditions if r.condition == cond]
+        est = np.full((cells, len(FREE)), np.nan)
+        sem = np.full((cells, len(FREE)), np.nan)
+        est_p = np.full_like(est, np.nan)
+        sem_p = np.full_like(sem, np.nan)
+        failed = cells - sum(r.fit is not None for r in rs)
+        for i, r in enumerate(rs):
+            if r.fit is not None:
+                est[i] = [getattr(r.fit.params, n) for n in FREE]
+                sem[i] = [r.fit.sems.get(n, np.nan) for n in FREE]
+            if r.fit_compare is not None:
+                est_p[i] = [getattr(r.fit_compare.params, n) for n in FREE]
+                sem_p[i] = [r.fit_compare.sems.get(n, np.nan) for n in FREE]
+        truth = {n: float(getattr(NOMINAL[cond].arm, n)) for n in FREE}
+        vaf = [r.vaf_percent for r in rs if r.vaf_percent is not None]
+        params = summarise(truth, est, sem)
+        out[cond] = {
+            "cells": cells,
+            "trials": 2 * cells,
+            "fits_failed": failed,
+            "median_vaf_percent": float(np.median(vaf)) if vaf else None,
+            "parameters": params,
+            "goal_met": {n: _goal_met(v) for n, v in params.items()},
+        }
         if compare:
-            f = _inverse_variance_fit(r.frf)
-            est_iv[i] = [getattr(f.params, n) for n in FREE]
-            sem_iv[i] = [f.sems.get(n, np.nan) for n in FREE]
-    truth = {n: float(getattr(behaviour.arm, n)) for n in FREE}
-    vaf = [r.vaf_percent for r in study.subject_conditions if r.vaf_percent is not None]
-    out = {
-        "cells": cells,
-        "trials": 2 * cells,
-        "fits_failed": failed,
-        "median_vaf_percent": float(np.median(vaf)) if vaf else None,
-        "parameters": summarise(truth, est, sem),
-    }
-    if compare:
-        out["inverse_variance"] = summarise(truth, est_iv, sem_iv)
+            out[cond]["paper"] = summarise(truth, est_p, sem_p)
     return out
 
 
 def main(argv: list[str]) -> dict:
     ap = argparse.ArgumentParser(prog="python -m benchmarks estimator_efficiency")
-    ap.add_argument("--cells", type=int, default=50, help="subject × condition cells per condition")
-    ap.add_argument("--conditions", default="RT,BT12,PT", help="comma-separated, from NOMINAL")
+    ap.add_argument("--cells", type=int, default=50, help="simulated subjects (replicates)")
+    ap.add_argument(
+        "--conditions", default="RT,BT18,BT12,BT8,BT5,PT", help="comma-separated, from NOMINAL"
+    )
     ap.add_argument("--fs", type=float, default=1000.0, help="sample rate, Hz")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument(
-        "--no-compare", action="store_true", help="skip the inverse-variance-weighted fits"
-    )
+    ap.add_argument("--no-compare", action="store_true", help="skip the paper-weighted fits")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     conditions = [c.strip() for c in a.conditions.split(",") if c.strip()]
-    results = {c: run_condition(c, a.cells, a.fs, a.seed, not a.no_compare) for c in conditions}
+    results = run_study(conditions, a.cells, a.fs, a.seed, not a.no_compare)
     return {
+        "all_goals_met": all(all(r["goal_met"].values()) for r in results.values()),
         "cells_per_condition": a.cells,
         "fs_hz": a.fs,
         "seed": a.seed,
