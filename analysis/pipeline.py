@@ -683,7 +683,41 @@ def compute_checks(
     checks.append(_damping_sems_larger(study))
     checks.append(_vaf_lowest_in_rt(stats.get("vaf"), conditions, alpha))
     checks.extend(_lpv_checks(lpv, loo_vaf))
-    return checks
+    return _explain_pairs(checks)
+
+
+def _explain_pairs(checks: list[Check]) -> list[Check]:
+    """A "changes" check that differs next to a "rises" check that passes (or the reverse)
+    for the same quantity looks contradictory; say why both can hold."""
+    by_id = {c.id: c for c in checks}
+    out = []
+    for c in checks:
+        for q in ("k_i", "b_c", "k_c"):
+            ch, ri = by_id.get(f"{q}_changes"), by_id.get(f"{q}_rises")
+            if ch is None or ri is None or ch.passed is None or ri.passed is None:
+                continue
+            if ch.passed == ri.passed or c.id not in (ch.id, ri.id):
+                continue
+            if ri.passed:
+                why = (
+                    f"Not a contradiction: Page's trend test (the {q}_rises row) asks only "
+                    "whether each subject's values rise in the predicted order, using ranks "
+                    "within subjects, and is far more powerful for an ordered effect than the "
+                    "omnibus RM-ANOVA, which weighs the size of the differences against the "
+                    "scatter between subjects. A consistent but small rise passes the first "
+                    "and not the second."
+                )
+            else:
+                why = (
+                    f"Not a contradiction: the RM-ANOVA (the {q}_changes row) detects any "
+                    "difference between the conditions; Page's trend test (the "
+                    f"{q}_rises row) asks for a rise in the predicted order, which these data "
+                    "do not show although the conditions differ."
+                )
+            note = f"{c.note} {why}".strip()
+            c = Check(c.id, c.paper, c.test, c.passed, c.values, note)
+        out.append(c)
+    return out
 
 
 def _means(q: QuantityStatistics) -> dict[str, float] | None:

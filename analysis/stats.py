@@ -183,6 +183,10 @@ def mauchly(values: np.ndarray, alpha: float = 0.05) -> Sphericity:
     w = float(np.exp(log_w))
     df = d * (d + 1) // 2 - 1
     f = 1.0 - (2 * d**2 + d + 2) / (6.0 * d * df_resid)
+    if f <= 0:
+        # Too few subjects for the test's χ² approximation (e.g. 2 subjects, 3 conditions):
+        # sphericity cannot be tested, so it is not assumed (the GG correction applies).
+        return Sphericity(W=w, chi2=float("nan"), df=int(df), p=float("nan"), alpha=alpha)
     chi2 = float(-df_resid * f * log_w)
     # Second-order term of the asymptotic expansion, written as R's mauchly.test writes it
     # (R puts the number of conditions k where Anderson has d); it matters for small n.

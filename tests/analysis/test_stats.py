@@ -217,3 +217,12 @@ def test_two_subjects_do_not_crash_the_huynh_feldt_correction():
     assert epsilon_hf(data) == 1.0
     res = rm_anova(data)
     assert np.isfinite(res.F)
+
+
+def test_mauchly_with_too_few_subjects_is_not_assumed_met():
+    # 2 subjects × 3 conditions: the χ² correction factor is 0, the test is undefined. It must
+    # not crash (a small imported study still gets its report) and must not assume sphericity.
+    from analysis.stats import mauchly
+
+    s = mauchly(np.array([[1.0, 2.0, 3.5], [1.2, 2.5, 3.0]]))
+    assert np.isnan(s.p) and not s.met
