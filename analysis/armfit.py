@@ -137,6 +137,12 @@ class AdmittanceEstimate(Protocol):
 
 
 WEIGHTINGS = ("inverse_variance", "paper")
+SAMPLINGS = ("zoh", "ideal")
+# The physical inertia of the wheel that the motor accelerates (Table 1), for the sampled-data
+# model. It nearly cancels from that model (at the bands where aliasing matters the wheel's own
+# inertia dominates both the direct and the aliased response), so the nominal value serves.
+DEFAULT_WHEEL_INERTIA_KGM2 = 0.3
+ALIAS_IMAGES = 12  # images ±m·fs summed on each side
 INERTIA_MODES = ("subject", "free", "fixed")
 # Inertia values of the coarse profile that gives the joint fit its start (kg·m²): from a
 # slender forearm to both arms braced, beyond what a human arm about the column can have.
@@ -165,8 +171,16 @@ class FitOptions:
     # differ by ~0.5 %, enough to bias b_c by about 1 % on noise-free data.
     band_mixing: bool = True
     weighting: str = "inverse_variance"
+    # "zoh": the rig holds its torque command between samples and reads angle and torque at
+    # the sample instants, so the held command's images above the Nyquist frequency fold back
+    # onto the excited bands; the fit compares Ĥ with that sampled-data response (see
+    # :func:`sampled_admittance`). "ideal": with H itself (continuous-time recording).
+    sampling: str = "zoh"
+    wheel_inertia: float = DEFAULT_WHEEL_INERTIA_KGM2
 
     def __post_init__(self) -> None:
+        if self.sampling not in SAMPLINGS:
+            raise ValueError(f"sampling must be one of {SAMPLINGS}, got {self.sampling!r}")
         if self.weighting not in WEIGHTINGS:
             raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {self.weighting!r}")
         if self.inertia not in INERTIA_MODES:
@@ -189,7 +203,42 @@ class FitOptions:
             "coherence_weighting": self.coherence_weighting,
             "frequency_weighting": self.frequency_weighting,
             "band_mixing": self.band_mixing,
+            "sampling": self.sampling,
+            "wheel_inertia_kgm2": self.wheel_inertia,
         }
+
+
+def sampled_admittance(
+    p: Mapping[str, float | np.ndarray],
+    s: np.ndarray,
+    fs_hz: float,
+    wheel_inertia: float = DEFAULT_WHEEL_INERTIA_KGM2,
+    images: int = ALIAS_IMAGES,
+) -> np.ndarray:
+    """What Ŝ(Tp,θ)/Ŝ(Tp,Td) measures at s = j2πf when the rig holds its command.
+
+    The wheel (inertia I_w, the motor's held command u and the hands' torque T_d acting on it)
+    and the arm are continuous: θ = P·u with P = 1/(I_w s² + 1/H), T_d = θ/H. The command is
+    held over each sample (zero-order hold Z(s) = (1 − e^{−sT})/(sT)) and θ, T_d are read at
+    the sample instants, so each measured coefficient sums the images at f + m·fs:
+
+        Ĥ_d(f) = Σ_m P Z (f + m fs) / Σ_m P Z / H (f + m fs)
+
+    which is H(f) when fs → ∞. Whatever the discrete command is (rendered dynamics, the
+    perturbation), it cancels from the ratio.
+    """
+    T = 1.0 / fs_hz
+    num = 0.0
+    den = 0.0
+    for m in range(-images, images + 1):
+        sm = s + 2j * np.pi * m * fs_hz
+        h = _H(p, sm)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z = np.where(sm == 0, 1.0, (1.0 - np.exp(-sm * T)) / (sm * T))
+        pz = z / (wheel_inertia * sm**2 + 1.0 / h)
+        num = num + pz
+        den = den + pz / h
+    return num / den
 
 
 @dataclass(frozen=True)
@@ -326,13 +375,27 @@ class _Problem:
     mix: np.ndarray
     w: np.ndarray  # weights, before the joint normalisation
     var: np.ndarray | None  # variance of Ĥ per band (smoothed where available), for the SEMs
+    fs_hz: float | None = None  # set: compare with the sampled-data response (zoh)
+    wheel_inertia: float = DEFAULT_WHEEL_INERTIA_KGM2
 
     def model(self, p: Mapping[str, float | np.ndarray]) -> np.ndarray:
-        return np.sum(self.mix * _H(p, self.s_bins), axis=-1)
+        if self.fs_hz is None:
+            return np.sum(self.mix * _H(p, self.s_bins), axis=-1)
+        h = sampled_admittance(p, self.s_bins, self.fs_hz, self.wheel_inertia)
+        return np.sum(self.mix * h, axis=-1)
 
     def partials(self, p: Mapping[str, float], names: Sequence[str]) -> np.ndarray:
-        d = _partials(p, self.s_bins)
-        return np.array([np.sum(self.mix * d[n], axis=-1) for n in names]).T  # (K, n)
+        if self.fs_hz is None:
+            d = _partials(p, self.s_bins)
+            return np.array([np.sum(self.mix * d[n], axis=-1) for n in names]).T  # (K, n)
+        # The sampled-data response by central differences (relative step; it is smooth).
+        cols = []
+        for n in names:
+            h = 1e-6 * p[n]
+            up, dn = dict(p), dict(p)
+            up[n], dn[n] = p[n] + h, p[n] - h
+            cols.append((self.model(up) - self.model(dn)) / (2 * h))
+        return np.array(cols).T
 
 
 def _variance(estimate: AdmittanceEstimate, use: np.ndarray) -> np.ndarray | None:
@@ -381,7 +444,8 @@ def _prepare(estimate: AdmittanceEstimate, opt: FitOptions, n_own: int) -> _Prob
             w = w / f
         # Each response counts alike in a joint fit: weights relative to its own size.
         w = w / np.sum(w * np.abs(H) ** 2)
-    return _Problem(f, H, s_bins, mix, w, var)
+    fs = getattr(estimate, "fs_hz", None) if opt.sampling == "zoh" else None
+    return _Problem(f, H, s_bins, mix, w, var, fs, opt.wheel_inertia)
 
 
 def _fit_own(

@@ -216,6 +216,7 @@ class FrequencyResponse:
     # None only for hand-built responses.
     H_variance_smooth: np.ndarray | None = None
     noise_dof: np.ndarray | None = None  # real degrees of freedom of each band's noise power
+    fs_hz: float | None = None  # the recording's sample rate (None if the trials differ)
 
     @property
     def magnitude(self) -> np.ndarray:
@@ -322,7 +323,16 @@ def frequency_response(spectra: TrialSpectra | Sequence[TrialSpectra]) -> Freque
         trials=tuple(s.label for s in items),
         H_variance_smooth=H_var_smooth,
         noise_dof=dof,
+        fs_hz=_common_rate([s.selection.fs_hz for s in items]),
     )
+
+
+def _common_rate(rates: Sequence[float | None]) -> float | None:
+    """The one sample rate of several recordings, or None when they differ or one is unknown."""
+    if not rates or any(r is None for r in rates):
+        return None
+    r0 = float(rates[0])  # type: ignore[arg-type]
+    return r0 if all(abs(float(r) - r0) <= 1e-9 * r0 for r in rates) else None  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
@@ -364,6 +374,7 @@ class GroupFrequencyResponse:
     # H_variance smoothed across frequency (smooth_log_spectrum, 2(n−1) degrees of freedom);
     # with one subject, that subject's own smoothed noise variance.
     H_variance_smooth: np.ndarray | None = None
+    fs_hz: float | None = None  # the subjects' common sample rate (None if they differ)
 
     @property
     def magnitude(self) -> np.ndarray:
@@ -453,4 +464,5 @@ def group_frequency_response(
             if n > 1
             else f0.H_variance_smooth
         ),
+        fs_hz=_common_rate([r.fs_hz for r in responses]),
     )

@@ -976,16 +976,21 @@ class StudyResults:
             d["held_value_kgm2"] = opt.I_i
         per = {}
         for name, j in self.study.inertia.items():
-            sens = {}
+            sens = []
             for lab, fit in j.by_label().items():
-                sens[lab] = {
-                    f"{n}_percent_per_10_percent_I_i": (
-                        100.0 * (0.1 * j.I_i * v) / getattr(fit.params, n)
-                    )
-                    for n, v in fit.inertia_sensitivity.items()
-                }
+                row: dict[str, Any] = {"condition": lab}
+                row.update(
+                    {
+                        f"{n}_percent_per_10_percent_I_i": (
+                            100.0 * (0.1 * j.I_i * v) / getattr(fit.params, n)
+                        )
+                        for n, v in fit.inertia_sensitivity.items()
+                    }
+                )
+                sens.append(row)
             rel = None if j.I_i_sem is None or j.I_i <= 0 else j.I_i_sem / j.I_i
             per[name] = {
+                "fit": name,
                 "I_i_kgm2": j.I_i,
                 "I_i_sem_kgm2": j.I_i_sem,
                 "relative_sem": rel,
@@ -997,7 +1002,7 @@ class StudyResults:
                 "profile_I_kgm2": list(j.profile_I),
                 "profile_cost": list(j.profile_cost),
             }
-        d["fits"] = per
+        d["fits"] = list(per.values())
         subj = [v["I_i_kgm2"] for k, v in per.items() if k != "group"]
         d["median_over_subjects_kgm2"] = float(np.median(subj)) if subj else None
         return d
@@ -1056,7 +1061,7 @@ class StudyResults:
         if groups_bad:
             out.append("group fits the data do not determine: " + "; ".join(groups_bad))
         inert = self.inertia_dict()
-        poor = [k for k, v in inert["fits"].items() if v["poorly_determined"]]
+        poor = [v["fit"] for v in inert["fits"] if v["poorly_determined"]]
         if poor:
             out.append(
                 f"I_i is poorly determined (SEM > {INERTIA_POORLY_DETERMINED:.0%} of the "

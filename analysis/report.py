@@ -789,11 +789,11 @@ def _inertia_section(res: StudyResults) -> str:
     if not d["fits"]:
         return '<h2 id="inertia">Inertia</h2><p>I_i was fitted per subject × condition.</p>'
     rows = []
-    for name, v in d["fits"].items():
-        sens = v["sensitivity"]
+    for v in d["fits"]:
+        name, sens = v["fit"], v["sensitivity"]
         med = {}
         for q in ("k_i", "b_i", "k_c", "b_c"):
-            vals = [c.get(f"{q}_percent_per_10_percent_I_i") for c in sens.values()]
+            vals = [c.get(f"{q}_percent_per_10_percent_I_i") for c in sens]
             vals = [x for x in vals if x is not None and np.isfinite(x)]
             med[q] = f"{float(np.median(vals)):+.1f} %" if vals else "–"
         rel = v["relative_sem"]

@@ -36,27 +36,27 @@ CONDITIONS = ("RT", "BT18", "BT12", "BT8", "BT5", "PT")
 
 #: name → otherworld StudyOptions overrides. Every world draws a random start phase per trial.
 WORLDS: dict[str, dict] = {
-    "reference (I 0.07, 250 Hz)": {},
+    "reference: I 0.07 at 250 Hz": {},
     "inertia 0.05": {"arm_inertia": 0.05},
     "inertia 0.15": {"arm_inertia": 0.15},
     "inertia varies by subject (SD 30 %)": {"arm_inertia": 0.09, "inertia_rel_sd": 0.3},
     "remnant x0.5": {"remnant_rel": 0.5 * BASE_REMNANT},
     "remnant x3": {"remnant_rel": 3 * BASE_REMNANT},
     "remnant corner 0.05 Hz": {"remnant_corner_hz": 0.05},
-    "remnant corner 1 Hz, 2nd order": {"remnant_corner_hz": 1.0, "remnant_order": 2},
+    "remnant corner 1 Hz 2nd order": {"remnant_corner_hz": 1.0, "remnant_order": 2},
     "low coherence in the lowest bands": {
         "remnant_rel": 3 * BASE_REMNANT,
         "remnant_corner_hz": 0.05,
         "remnant_order": 2,
     },
-    "sensor noise x5, quantised": {
+    "sensor noise x5 quantised": {
         "angle_noise_rad": 1e-4,
         "torque_noise_Nm": 0.1,
         "angle_lsb_rad": 2 * np.pi / 4096,
         "torque_lsb_Nm": 0.01,
     },
     "100 Hz": {"fs_hz": 100.0},
-    "2 kHz, velocity by difference": {"fs_hz": 2000.0, "velocity_source": "difference"},
+    "2 kHz velocity by difference": {"fs_hz": 2000.0, "velocity_source": "difference"},
 }
 
 

@@ -187,9 +187,9 @@ def test_default_report_recovers_another_labs_world(other_lab_study):
     assert med["b_i"] <= 0.15 and med["b_c"] <= 0.15, med
     assert med["I_i"] <= 0.10, med
     assert res["inertia"]["mode"] == "subject"
+    fits = {f["fit"]: f for f in res["inertia"]["fits"]}
     for s in ("S01", "S02"):
-        fit = res["inertia"]["fits"][s]
-        assert fit["I_i_sem_kgm2"] > 0 and not fit["poorly_determined"]
+        assert fits[s]["I_i_sem_kgm2"] > 0 and not fits[s]["poorly_determined"]
     assert not res["simulated"]  # imported: Steerlab does not claim to have simulated it
 
 

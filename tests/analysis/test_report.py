@@ -34,6 +34,7 @@ FIGURE_IDS = (
     "time_signals",
     "grip",
     "admittance",
+    "subject_admittance",
     "parameters",
     "lpv_parameters",
     "lpv_responses",
@@ -246,8 +247,11 @@ def test_per_subject_csv_matches_results_json(report, results):
             p = cell["parameters"][r["quantity"]]
             assert float(r["value"]) == p["value"] and r["unit"] == p["unit"]
             assert (r["sem"] == "") if p["sem"] is None else float(r["sem"]) == p["sem"]
+    # I_i: one value per subject shared by its conditions (the default joint fit), with an SEM.
     i_i = [r for r in rows if r["quantity"] == "I_i"]
-    assert all(r["sem"] == "" and float(r["value"]) == 0.1 for r in i_i)  # fixed, no SEM
+    for subj in {r["subject"] for r in i_i}:
+        mine = [r for r in i_i if r["subject"] == subj]
+        assert len({r["value"] for r in mine}) == 1 and all(float(r["sem"]) > 0 for r in mine)
 
 
 def test_index_html_is_self_contained_with_figures_and_tables(report, results):
