@@ -644,6 +644,7 @@ def simulate_trial(
             "omega_h": X[:, 3],
             "Td": td_true,
             "remnant": X[:, lay.rem[0]],
+            "reflex": X[:, lay.reflex] if lay.reflex is not None else np.zeros(n),
             "u": u,
             "applied": applied,
             "k_i": k_series,
