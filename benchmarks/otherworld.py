@@ -394,6 +394,20 @@ class _History:
         self.d0 = np.zeros((n_samples, n_states))  # derivative at the start of interval k
         self.d1 = np.zeros((n_samples, n_states))  # … at its end (same held inputs)
 
+    def reflex_drive(self, t: float, k_p: float, k_v: float) -> float:
+        """k_p θ_h(t) + k_v θ_h'(t) by cubic Hermite (θ_h, ω_h are states 2, 3), in floats."""
+        if t <= 0.0:
+            return 0.0
+        k = int(t / self.h)
+        s = (t - k * self.h) / self.h
+        h = self.h
+        s2, s3 = s * s, s * s * s
+        h00, h10, h01, h11 = 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
+        x0, x1, d0, d1 = self.x[k], self.x[k + 1], self.d0[k], self.d1[k]
+        th = h00 * x0[2] + h10 * h * d0[2] + h01 * x1[2] + h11 * h * d1[2]
+        om = h00 * x0[3] + h10 * h * d0[3] + h01 * x1[3] + h11 * h * d1[3]
+        return k_p * th + k_v * om
+
     def at(self, t: float, idx) -> np.ndarray:
         if t <= 0.0:
             return self.x[0, idx]
@@ -404,8 +418,7 @@ class _History:
         )
 
 
-def _spring(world: World, theta: float, k_i: float) -> float:
-    m = world.mech("stiffening")
+def _spring(m: dict | None, theta: float, k_i: float) -> float:
     if m is None:
         return k_i * theta
     ref, rise = m["theta_ref_rad"], m["rise"]
@@ -540,8 +553,8 @@ def simulate_trial(
     else:
         refl = world.mech("reflex")
         fric = world.mech("friction")
+        stiff = world.mech("stiffening")
         I_i, Iw = a["I_i"], world.wheel_inertia
-        idx_h = np.array([2, 3])
         lagi = lay.lag
         if lag and lag["form"] == "second_order":
             wn2 = (2 * np.pi * lag["f_hz"]) ** 2
@@ -560,15 +573,14 @@ def simulate_trial(
             d[1] = (ta - td - _friction(fric, om)) / Iw
             rem = x[lay.rem[0]]
             refl_t = x[lay.reflex] if lay.reflex is not None else 0.0
-            d[3] = (td + rem - a["b_i"] * omh - _spring(world, thh, kk) - refl_t) / I_i
+            d[3] = (td + rem - a["b_i"] * omh - _spring(stiff, thh, kk) - refl_t) / I_i
             if len(lay.rem) == 1:
                 d[lay.rem[0]] = wc * (g * wk - rem)
             else:
                 d[lay.rem[0]] = x[lay.rem[1]]
                 d[lay.rem[1]] = wc**2 * (g * wk - rem) - math.sqrt(2) * wc * x[lay.rem[1]]
             if lay.reflex is not None:
-                xd = hist.at(tt - refl["delay_s"], idx_h)
-                drive = refl["k_p"] * xd[0] + refl["k_v"] * xd[1]
+                drive = hist.reflex_drive(tt - refl["delay_s"], refl["k_p"], refl["k_v"])
                 d[lay.reflex] = (drive - refl_t) / refl["tau_act_s"]
             if len(lagi) == 1:
                 d[lagi[0]] = (uk - x[lagi[0]]) / lag["tau_s"]
@@ -890,16 +902,79 @@ def _parser() -> argparse.ArgumentParser:
         help="kind:form[:key=value,...], e.g. reflex:position:delay_s=0.035 (repeatable)",
     )
     p.add_argument("--overwrite", action="store_true")
+    p.add_argument(
+        "--timing", action="store_true", help="only time one trial per integrator (no study)"
+    )
+    p.add_argument(
+        "--report",
+        action="store_true",
+        help="then run `steerlab import` and `steerlab report` (default options) on the study "
+        "(into OUT/sessions, OUT/report; the trials go to OUT/csv) and compare with the truth",
+    )
     return p
+
+
+def time_trials(fs_hz: float = 250.0, n_periods: int = 2, run_in_s: float = 5.0) -> dict:
+    """Wall and CPU seconds for one trial (BT12 arm, I_i 0.07) per integrator and with a
+    nonlinear mechanism; the CSV writing of a study comes on top."""
+    d = Multisine.design(1)
+    arm = {"I_i": 0.07} | DEFAULT_ARM["BT12"]
+    cases = {
+        "expm_null": World(arm=arm, fs_hz=fs_hz, integrator="expm"),
+        "solve_ivp_null": World(arm=arm, fs_hz=fs_hz, integrator="solve_ivp"),
+        "solve_ivp_reflex": World(
+            arm=arm, fs_hz=fs_hz, mechanisms=[mechanism("reflex", "position_velocity")]
+        ),
+        "solve_ivp_friction": World(
+            arm=arm, fs_hz=fs_hz, mechanisms=[mechanism("friction", "stribeck")]
+        ),
+    }
+    out = {"trial_s": run_in_s + n_periods * d.period_s, "fs_hz": fs_hz}
+    for name, w in cases.items():
+        w0, c0 = time.perf_counter(), time.process_time()
+        simulate_trial(w, d, n_periods=n_periods, run_in_s=run_in_s, seed=1)
+        out[name] = {
+            "wall_s": round(time.perf_counter() - w0, 2),
+            "cpu_s": round(time.process_time() - c0, 2),
+        }
+    return out
+
+
+def report_recovery(study_dir: str | Path, csv_dir: str | Path, truth: dict) -> dict:
+    """Run Steerlab on the study, as a user would (its CLI, default options), and compare.
+
+    This is the consumer side: it imports Steerlab's CLI; the world above does not."""
+    from app.cli import main as steerlab
+
+    root = Path(study_dir)
+    t0 = time.perf_counter()
+    for argv in (
+        ["import", str(csv_dir), "--out", str(root / "sessions"), "--overwrite"],
+        ["report", str(root / "sessions"), "--out", str(root / "report")],
+    ):
+        rc = steerlab(argv)
+        if rc != 0:
+            raise OtherworldError(f"steerlab {' '.join(argv)} exited with {rc}")
+    rec = recovery(truth, root / "report" / "per_subject.csv")
+    return {
+        "steerlab_s": round(time.perf_counter() - t0, 1),
+        "median_error": {k: v["median_error"] for k, v in rec["parameters"].items()},
+        "median_abs_error": {k: v["median_abs_error"] for k, v in rec["parameters"].items()},
+    }
 
 
 def main(argv: list[str]) -> dict:
     """``python -m benchmarks otherworld ...``: generate a study; returns timing figures."""
     a = _parser().parse_args(argv)
+    if a.timing:
+        return time_trials(a.fs, a.periods)
     conds = tuple(c.strip() for c in a.conditions.split(",") if c.strip())
     mechs = [parse_mechanism(m) for m in a.mechanism]
+    csv_dir = Path(a.out) / "csv" if a.report else Path(a.out)
+    if a.report and Path(a.out).exists() and a.overwrite:
+        shutil.rmtree(a.out)
     truth = generate_study(
-        a.out,
+        csv_dir,
         subjects=a.subjects,
         conditions=conds,
         seed=a.seed,
@@ -916,13 +991,16 @@ def main(argv: list[str]) -> dict:
         integrator=a.integrator,
         mechanisms=mechs,
     )
-    return {
+    result = {
         "out": str(a.out),
         "trials": truth["n_trials"],
         "seconds": round(truth["generation_s"], 2),
         "seconds_per_trial": round(truth["generation_s"] / truth["n_trials"], 3),
         "integrators": sorted({t["integrator"] for t in truth["trials"].values()}),
     }
+    if a.report:
+        result |= report_recovery(a.out, csv_dir, truth)
+    return result
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -932,10 +1010,6 @@ def cli(argv: list[str] | None = None) -> int:
         print(f"otherworld: {e}", file=sys.stderr)
         return 2
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(cli())
 
 
 # -- recovery: Steerlab's estimates against this world's truth ------------------------------------
@@ -979,3 +1053,7 @@ def recovery(truth: dict | str | Path, per_subject_csv: str | Path) -> dict:
             "n": int(np.sum(np.isfinite(v))),
         }
     return {"cells": cells, "parameters": med}
+
+
+if __name__ == "__main__":
+    sys.exit(cli())
