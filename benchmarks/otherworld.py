@@ -893,6 +893,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--angle-noise", type=float, default=2e-5, help="rad")
     p.add_argument("--torque-noise", type=float, default=0.02, help="N·m")
     p.add_argument("--velocity", choices=("state", "difference"), default="state")
+    p.add_argument("--inertia-sd", type=float, default=0.0, help="subject spread of I_i (rel.)")
+    p.add_argument("--wheel-inertia", type=float, default=WHEEL["I_sw"], help="physical, kg·m²")
+    p.add_argument("--angle-lsb", type=float, default=0.0, help="quantisation step, rad")
+    p.add_argument("--torque-lsb", type=float, default=0.0, help="quantisation step, N·m")
     p.add_argument("--periods", type=int, default=2)
     p.add_argument("--integrator", choices=("auto", "expm", "solve_ivp"), default="auto")
     p.add_argument(
@@ -987,6 +991,10 @@ def main(argv: list[str]) -> dict:
         angle_noise_rad=a.angle_noise,
         torque_noise_Nm=a.torque_noise,
         velocity_source=a.velocity,
+        inertia_rel_sd=a.inertia_sd,
+        wheel_inertia=a.wheel_inertia,
+        angle_lsb_rad=a.angle_lsb,
+        torque_lsb_Nm=a.torque_lsb,
         n_periods=a.periods,
         integrator=a.integrator,
         mechanisms=mechs,
