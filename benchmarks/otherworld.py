@@ -83,6 +83,7 @@ from pathlib import Path
 import numpy as np
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm, solve_discrete_lyapunov
+from scipy.signal import lfilter
 
 CONDITIONS = ("RT", "BT18", "BT12", "BT8", "BT5", "PT")
 BOUNDARY_DEG = {"RT": math.inf, "BT18": 18.0, "BT12": 12.0, "BT8": 8.0, "BT5": 5.0, "PT": 0.0}
@@ -485,11 +486,9 @@ def simulate_trial(
     rel_sd = grip_m["grip_rel_sd"] if grip_m else world.grip_rel_sd
     gc = 2 * np.pi * 0.2
     phi = math.exp(-gc * h)
-    fl = np.zeros(n)
     e = rng.standard_normal(n) * math.sqrt(1 - phi**2)
-    fl[0] = rng.standard_normal()
-    for k in range(1, n):
-        fl[k] = phi * fl[k - 1] + e[k]
+    e[0] = rng.standard_normal()  # start in the stationary distribution (unit variance)
+    fl = lfilter([1.0], [1.0, -phi], e)  # AR(1): fl[k] = φ fl[k−1] + e[k]
     grip_mean = grip_of_stiffness(a["k_i"])
     grip_true = grip_mean * (1.0 + rel_sd * fl)
     if grip_m:
