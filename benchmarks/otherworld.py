@@ -20,7 +20,11 @@ drive's estimate, i.e. the true velocity, or a backward difference of the read a
 and holds it (zero-order hold) until t_{k+1}. Without actuator lag T_a = u_k. The wheel's
 *physical* inertia ``wheel_inertia`` (default 0.3) is what the rig has; no inertia is rendered.
 The recorded angle and torque are the values read at t_k (plus sensor noise), the recorded
-perturbation is T_p(t_k) (with its fade-in).
+perturbation is T_p(t_k) (with its fade-in). By default the rig's loop runs at the record rate;
+``control_per_sample`` = m makes it run m times faster, the recorder keeping every m-th cycle,
+either the value at that cycle (``record_filter="none"``) or the mean of the angle reads and of
+the torque over the m cycles ending there (``"mean"``: a boxcar recorder filter, delay
+(m − 1)/2 cycles, on the sensor channels only; T_p is recorded as commanded).
 
 Integration
     - ``"solve_ivp"``: the continuous model between sample instants, one
@@ -259,6 +263,12 @@ class World:
     grip_noise_N: float = 1.0
     mechanisms: list = field(default_factory=list)
     integrator: str = "auto"
+    control_per_sample: int = 1  # the rig renders this many times per recorded sample
+    record_filter: str = "none"  # "none" | "mean": the recorder's filter on angle and torque
+
+    @property
+    def control_hz(self) -> float:
+        return self.fs_hz * self.control_per_sample
 
     def validate(self) -> None:
         for k in ARM_KEYS:
@@ -267,6 +277,14 @@ class World:
                 raise OtherworldError(f"world arm parameter {k}: must be a number > 0, got {v!r}")
         if not 100.0 <= self.fs_hz <= 5000.0:
             raise OtherworldError(f"world fs_hz: 100–5000 Hz, got {self.fs_hz}")
+        if not (isinstance(self.control_per_sample, int) and 1 <= self.control_per_sample <= 20):
+            raise OtherworldError(
+                f"world control_per_sample: a whole number 1–20, got {self.control_per_sample!r}"
+            )
+        if self.record_filter not in ("none", "mean"):
+            raise OtherworldError(
+                f"world record_filter: 'none' or 'mean', got {self.record_filter!r}"
+            )
         if self.velocity_source not in ("state", "difference"):
             raise OtherworldError(
                 f"world velocity_source: 'state' or 'difference', got {self.velocity_source!r}"
@@ -282,10 +300,10 @@ class World:
             mechanism(
                 m["kind"], m["form"], **{k: v for k, v in m.items() if k not in ("kind", "form")}
             )
-            if m["kind"] == "reflex" and m["delay_s"] < 1.0 / self.fs_hz:
+            if m["kind"] == "reflex" and m["delay_s"] < 1.0 / self.control_hz:
                 raise OtherworldError(
-                    f"mechanism reflex: delay_s {m['delay_s']} s is shorter than a sample "
-                    f"({1 / self.fs_hz:g} s)"
+                    f"mechanism reflex: delay_s {m['delay_s']} s is shorter than a control "
+                    f"cycle ({1 / self.control_hz:g} s)"
                 )
         if self.integrator == "expm" and not self.is_linear():
             raise OtherworldError(
@@ -372,7 +390,7 @@ def _remnant_gain(world: World, sd: float) -> float:
     o = world.remnant_order
     A = np.array([[-wc]]) if o == 1 else np.array([[0.0, 1.0], [-(wc**2), -math.sqrt(2) * wc]])
     B = np.array([[wc]]) if o == 1 else np.array([[0.0], [wc**2]])
-    Ad, Bd = _discretise(A, B, 1.0 / world.fs_hz)
+    Ad, Bd = _discretise(A, B, 1.0 / world.control_hz)
     P = solve_discrete_lyapunov(Ad, Bd @ Bd.T)
     return sd / math.sqrt(P[0, 0])
 
@@ -463,9 +481,11 @@ def simulate_trial(
     reaching the wheel at the start of each interval), k_i (per interval), grip) and ``integrator``.
     """
     world.validate()
-    fs = world.fs_hz
+    mc = world.control_per_sample
+    fs = world.control_hz  # everything below runs at the control rate; recorded at the end
     h = 1.0 / fs
-    n = int(round((run_in_s + n_periods * design.period_s) * fs))
+    n_rec = int(round((run_in_s + n_periods * design.period_s) * world.fs_hz))
+    n = n_rec * mc
     rng = np.random.default_rng(seed)
     t = np.arange(n) * h
     tp = design.value(t + phase_offset_s)
@@ -634,32 +654,44 @@ def simulate_trial(
     if sd:
         ts = t - sd["delay_s"]
         th_d = np.array([hist.at(tt, [0, 1, 2, 3]) for tt in ts])
-        td_meas = a["k_c"] * (th_d[:, 0] - th_d[:, 2]) + a["b_c"] * (th_d[:, 1] - th_d[:, 3])
+        td_sensed = a["k_c"] * (th_d[:, 0] - th_d[:, 2]) + a["b_c"] * (th_d[:, 1] - th_d[:, 3])
     else:
-        td_meas = td_true.copy()
-    td_meas = td_meas + world.torque_noise_Nm * rng.standard_normal(n)
+        td_sensed = td_true
+
+    # The recorder: one sample per `mc` control cycles, at a control instant. "mean" averages the
+    # angle reads and the torque over the mc cycles ending there; T_p is the command's value.
+    rec_idx = np.arange(n_rec) * mc
+
+    def record(x):
+        if world.record_filter == "none" or mc == 1:
+            return x[rec_idx]
+        c = np.concatenate(([0.0], np.cumsum(x)))
+        lo = np.maximum(rec_idx - mc + 1, 0)
+        return (c[rec_idx + 1] - c[lo]) / (rec_idx + 1 - lo)
+
+    td_meas = record(td_sensed) + world.torque_noise_Nm * rng.standard_normal(n_rec)
     if world.torque_lsb_Nm > 0:
         td_meas = np.round(td_meas / world.torque_lsb_Nm) * world.torque_lsb_Nm
-    grip_meas = grip_true + world.grip_noise_N * rng.standard_normal(n)
+    grip_meas = grip_true[rec_idx] + world.grip_noise_N * rng.standard_normal(n_rec)
     return {
-        "time_s": t,
-        "perturbation_torque_Nm": tp,
+        "time_s": np.arange(n_rec) / world.fs_hz,
+        "perturbation_torque_Nm": tp[rec_idx],
         "driver_torque_Nm": td_meas,
-        "wheel_angle_rad": theta_read,
+        "wheel_angle_rad": record(theta_read),
         "grip_force_N": grip_meas,
         "integrator": integ,
-        "true": {
-            "theta": X[:, 0],
-            "omega": X[:, 1],
-            "theta_h": X[:, 2],
-            "omega_h": X[:, 3],
-            "Td": td_true,
-            "remnant": X[:, lay.rem[0]],
-            "reflex": X[:, lay.reflex] if lay.reflex is not None else np.zeros(n),
-            "u": u,
-            "applied": applied,
-            "k_i": k_series,
-            "grip": grip_true,
+        "true": {  # at the record instants
+            "theta": X[rec_idx, 0],
+            "omega": X[rec_idx, 1],
+            "theta_h": X[rec_idx, 2],
+            "omega_h": X[rec_idx, 3],
+            "Td": td_true[rec_idx],
+            "remnant": X[rec_idx, lay.rem[0]],
+            "reflex": X[rec_idx, lay.reflex] if lay.reflex is not None else np.zeros(n_rec),
+            "u": u[rec_idx],
+            "applied": applied[rec_idx],
+            "k_i": k_series[rec_idx],
+            "grip": grip_true[rec_idx],
         },
     }
 
@@ -688,6 +720,8 @@ class StudyOptions:
     random_phase: bool = True
     mechanisms: list = field(default_factory=list)
     integrator: str = "auto"
+    control_per_sample: int = 1
+    record_filter: str = "none"
     perturbation_seed: int | None = None  # default: from the study seed
     period_s: float = 45.0  # the perturbation's period (shorter only for fast tests)
 
@@ -817,6 +851,8 @@ def generate_study(
                     torque_lsb_Nm=opts.torque_lsb_Nm,
                     mechanisms=[dict(m) for m in opts.mechanisms],
                     integrator=opts.integrator,
+                    control_per_sample=opts.control_per_sample,
+                    record_filter=opts.record_filter,
                 )
                 lo, hi = opts.run_in_s
                 run_in = float(rng.uniform(lo, hi))
@@ -894,6 +930,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--velocity", choices=("state", "difference"), default="state")
     p.add_argument("--inertia-sd", type=float, default=0.0, help="subject spread of I_i (rel.)")
     p.add_argument("--wheel-inertia", type=float, default=WHEEL["I_sw"], help="physical, kg·m²")
+    p.add_argument(
+        "--control-per-sample", type=int, default=1, help="rig loop cycles per recorded sample"
+    )
+    p.add_argument("--record-filter", choices=("none", "mean"), default="none")
     p.add_argument("--angle-lsb", type=float, default=0.0, help="quantisation step, rad")
     p.add_argument("--torque-lsb", type=float, default=0.0, help="quantisation step, N·m")
     p.add_argument("--periods", type=int, default=2)
@@ -992,6 +1032,8 @@ def main(argv: list[str]) -> dict:
         velocity_source=a.velocity,
         inertia_rel_sd=a.inertia_sd,
         wheel_inertia=a.wheel_inertia,
+        control_per_sample=a.control_per_sample,
+        record_filter=a.record_filter,
         angle_lsb_rad=a.angle_lsb,
         torque_lsb_Nm=a.torque_lsb,
         n_periods=a.periods,
