@@ -726,6 +726,38 @@ class StudyOptions:
     period_s: float = 45.0  # the perturbation's period (shorter only for fast tests)
 
 
+# Worlds a real lab varies and Steerlab cannot know (issue 13's robustness list), as StudyOptions.
+WORLDS = {
+    "null": {},
+    "inertia_0.05": {"arm_inertia": 0.05},
+    "inertia_0.15": {"arm_inertia": 0.15},
+    "inertia_spread": {"inertia_rel_sd": 0.25},
+    "remnant_x0.5_1Hz": {"remnant_rel": 0.125, "remnant_corner_hz": 1.0},
+    "remnant_x3_0.05Hz": {"remnant_rel": 0.75, "remnant_corner_hz": 0.05},
+    "paper_coherence": {"remnant_rel": 2.0, "remnant_corner_hz": 0.05, "remnant_order": 2},
+    "noisy_sensors": {
+        "angle_noise_rad": 1e-4,
+        "torque_noise_Nm": 0.1,
+        "angle_lsb_rad": 2 * math.pi / 2**14,
+    },
+    "fs_100": {"fs_hz": 100.0},
+    "fs_2000": {"fs_hz": 2000.0},
+    "rig_1k_recorder_250_mean": {"control_per_sample": 4, "record_filter": "mean"},
+    "velocity_difference": {"velocity_source": "difference"},
+    "heavy_rig": {"wheel_inertia": 0.36},
+}
+# One moderate hidden mechanism per family (issue 18's table), for diagnosis studies.
+HIDDEN = {
+    "reflex": mechanism("reflex", "position_velocity", delay_s=0.035),
+    "friction": mechanism("friction", "coulomb"),
+    "stiffening": mechanism("stiffening", "cubic"),
+    "actuator_lag": mechanism("actuator_lag", "first_order", tau_s=0.012),
+    "sensor_delay": mechanism("sensor_delay", "delay", delay_s=0.012),
+    "grip_stiffness": mechanism("grip_stiffness", "power"),
+    "drift": mechanism("drift", "linear", rate=0.04),
+}
+
+
 def _subject_arms(rng, conditions, opts: StudyOptions) -> tuple[float, dict]:
     I_i = opts.arm_inertia * math.exp(opts.inertia_rel_sd * rng.standard_normal())
     factor = {k: math.exp(opts.between_rel_sd * rng.standard_normal()) for k in DEFAULT_ARM["RT"]}
@@ -946,6 +978,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--overwrite", action="store_true")
     p.add_argument(
+        "--world",
+        choices=sorted(WORLDS),
+        help="a named world (WORLDS); its options replace the flags above for those options",
+    )
+    p.add_argument(
         "--timing", action="store_true", help="only time one trial per integrator (no study)"
     )
     p.add_argument(
@@ -1016,12 +1053,7 @@ def main(argv: list[str]) -> dict:
     csv_dir = Path(a.out) / "csv" if a.report else Path(a.out)
     if a.report and Path(a.out).exists() and a.overwrite:
         shutil.rmtree(a.out)
-    truth = generate_study(
-        csv_dir,
-        subjects=a.subjects,
-        conditions=conds,
-        seed=a.seed,
-        overwrite=a.overwrite,
+    options = dict(
         fs_hz=a.fs,
         arm_inertia=a.inertia,
         remnant_rel=a.remnant_rel,
@@ -1039,6 +1071,14 @@ def main(argv: list[str]) -> dict:
         n_periods=a.periods,
         integrator=a.integrator,
         mechanisms=mechs,
+    ) | (WORLDS[a.world] if a.world else {})
+    truth = generate_study(
+        csv_dir,
+        subjects=a.subjects,
+        conditions=conds,
+        seed=a.seed,
+        overwrite=a.overwrite,
+        **options,
     )
     result = {
         "out": str(a.out),

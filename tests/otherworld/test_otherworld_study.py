@@ -18,6 +18,7 @@ import pytest
 from app.cli import main as steerlab
 from benchmarks.otherworld import (
     DEFAULT_ARM,
+    WORLDS,
     Multisine,
     OtherworldError,
     generate_study,
@@ -172,3 +173,23 @@ def test_cli_writes_a_study_and_rejects_bad_input(tmp_path):
     )
     assert bad.returncode == 2
     assert "friction: form 'sticky'" in bad.stderr
+
+
+@pytest.mark.parametrize("name", sorted(WORLDS))
+def test_every_named_world_generates(tmp_path, name):
+    truth = generate_study(
+        tmp_path / name,
+        subjects=1,
+        conditions=("BT8",),
+        seed=2,
+        period_s=10.0,
+        n_periods=1,
+        run_in_s=(2.0, 2.0),
+        **WORLDS[name],
+    )
+    for k, v in WORLDS[name].items():
+        assert truth["options"][k] == v
+    fs = truth["options"]["fs_hz"]
+    data = np.loadtxt(next((tmp_path / name).glob("*.csv")), delimiter=",", skiprows=1)
+    assert len(data) == int(12.0 * fs) and np.all(np.isfinite(data))
+    assert 0.005 < data[:, 3].std() < 0.5  # a plausible wheel angle (rad)
