@@ -20,7 +20,11 @@ drive's estimate, i.e. the true velocity, or a backward difference of the read a
 and holds it (zero-order hold) until t_{k+1}. Without actuator lag T_a = u_k. The wheel's
 *physical* inertia ``wheel_inertia`` (default 0.3) is what the rig has; no inertia is rendered.
 The recorded angle and torque are the values read at t_k (plus sensor noise), the recorded
-perturbation is T_p(t_k) (with its fade-in).
+perturbation is T_p(t_k) (with its fade-in). By default the rig's loop runs at the record rate;
+``control_per_sample`` = m makes it run m times faster, the recorder keeping every m-th cycle,
+either the value at that cycle (``record_filter="none"``) or the mean of the angle reads and of
+the torque over the m cycles ending there (``"mean"``: a boxcar recorder filter, delay
+(m − 1)/2 cycles, on the sensor channels only; T_p is recorded as commanded).
 
 Integration
     - ``"solve_ivp"``: the continuous model between sample instants, one
@@ -83,6 +87,7 @@ from pathlib import Path
 import numpy as np
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm, solve_discrete_lyapunov
+from scipy.signal import lfilter
 
 CONDITIONS = ("RT", "BT18", "BT12", "BT8", "BT5", "PT")
 BOUNDARY_DEG = {"RT": math.inf, "BT18": 18.0, "BT12": 12.0, "BT8": 8.0, "BT5": 5.0, "PT": 0.0}
@@ -258,6 +263,12 @@ class World:
     grip_noise_N: float = 1.0
     mechanisms: list = field(default_factory=list)
     integrator: str = "auto"
+    control_per_sample: int = 1  # the rig renders this many times per recorded sample
+    record_filter: str = "none"  # "none" | "mean": the recorder's filter on angle and torque
+
+    @property
+    def control_hz(self) -> float:
+        return self.fs_hz * self.control_per_sample
 
     def validate(self) -> None:
         for k in ARM_KEYS:
@@ -266,6 +277,14 @@ class World:
                 raise OtherworldError(f"world arm parameter {k}: must be a number > 0, got {v!r}")
         if not 100.0 <= self.fs_hz <= 5000.0:
             raise OtherworldError(f"world fs_hz: 100–5000 Hz, got {self.fs_hz}")
+        if not (isinstance(self.control_per_sample, int) and 1 <= self.control_per_sample <= 20):
+            raise OtherworldError(
+                f"world control_per_sample: a whole number 1–20, got {self.control_per_sample!r}"
+            )
+        if self.record_filter not in ("none", "mean"):
+            raise OtherworldError(
+                f"world record_filter: 'none' or 'mean', got {self.record_filter!r}"
+            )
         if self.velocity_source not in ("state", "difference"):
             raise OtherworldError(
                 f"world velocity_source: 'state' or 'difference', got {self.velocity_source!r}"
@@ -281,10 +300,10 @@ class World:
             mechanism(
                 m["kind"], m["form"], **{k: v for k, v in m.items() if k not in ("kind", "form")}
             )
-            if m["kind"] == "reflex" and m["delay_s"] < 1.0 / self.fs_hz:
+            if m["kind"] == "reflex" and m["delay_s"] < 1.0 / self.control_hz:
                 raise OtherworldError(
-                    f"mechanism reflex: delay_s {m['delay_s']} s is shorter than a sample "
-                    f"({1 / self.fs_hz:g} s)"
+                    f"mechanism reflex: delay_s {m['delay_s']} s is shorter than a control "
+                    f"cycle ({1 / self.control_hz:g} s)"
                 )
         if self.integrator == "expm" and not self.is_linear():
             raise OtherworldError(
@@ -371,7 +390,7 @@ def _remnant_gain(world: World, sd: float) -> float:
     o = world.remnant_order
     A = np.array([[-wc]]) if o == 1 else np.array([[0.0, 1.0], [-(wc**2), -math.sqrt(2) * wc]])
     B = np.array([[wc]]) if o == 1 else np.array([[0.0], [wc**2]])
-    Ad, Bd = _discretise(A, B, 1.0 / world.fs_hz)
+    Ad, Bd = _discretise(A, B, 1.0 / world.control_hz)
     P = solve_discrete_lyapunov(Ad, Bd @ Bd.T)
     return sd / math.sqrt(P[0, 0])
 
@@ -394,6 +413,20 @@ class _History:
         self.d0 = np.zeros((n_samples, n_states))  # derivative at the start of interval k
         self.d1 = np.zeros((n_samples, n_states))  # … at its end (same held inputs)
 
+    def reflex_drive(self, t: float, k_p: float, k_v: float) -> float:
+        """k_p θ_h(t) + k_v θ_h'(t) by cubic Hermite (θ_h, ω_h are states 2, 3), in floats."""
+        if t <= 0.0:
+            return 0.0
+        k = int(t / self.h)
+        s = (t - k * self.h) / self.h
+        h = self.h
+        s2, s3 = s * s, s * s * s
+        h00, h10, h01, h11 = 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
+        x0, x1, d0, d1 = self.x[k], self.x[k + 1], self.d0[k], self.d1[k]
+        th = h00 * x0[2] + h10 * h * d0[2] + h01 * x1[2] + h11 * h * d1[2]
+        om = h00 * x0[3] + h10 * h * d0[3] + h01 * x1[3] + h11 * h * d1[3]
+        return k_p * th + k_v * om
+
     def at(self, t: float, idx) -> np.ndarray:
         if t <= 0.0:
             return self.x[0, idx]
@@ -404,8 +437,7 @@ class _History:
         )
 
 
-def _spring(world: World, theta: float, k_i: float) -> float:
-    m = world.mech("stiffening")
+def _spring(m: dict | None, theta: float, k_i: float) -> float:
     if m is None:
         return k_i * theta
     ref, rise = m["theta_ref_rad"], m["rise"]
@@ -449,9 +481,11 @@ def simulate_trial(
     reaching the wheel at the start of each interval), k_i (per interval), grip) and ``integrator``.
     """
     world.validate()
-    fs = world.fs_hz
+    mc = world.control_per_sample
+    fs = world.control_hz  # everything below runs at the control rate; recorded at the end
     h = 1.0 / fs
-    n = int(round((run_in_s + n_periods * design.period_s) * fs))
+    n_rec = int(round((run_in_s + n_periods * design.period_s) * world.fs_hz))
+    n = n_rec * mc
     rng = np.random.default_rng(seed)
     t = np.arange(n) * h
     tp = design.value(t + phase_offset_s)
@@ -472,11 +506,9 @@ def simulate_trial(
     rel_sd = grip_m["grip_rel_sd"] if grip_m else world.grip_rel_sd
     gc = 2 * np.pi * 0.2
     phi = math.exp(-gc * h)
-    fl = np.zeros(n)
     e = rng.standard_normal(n) * math.sqrt(1 - phi**2)
-    fl[0] = rng.standard_normal()
-    for k in range(1, n):
-        fl[k] = phi * fl[k - 1] + e[k]
+    e[0] = rng.standard_normal()  # start in the stationary distribution (unit variance)
+    fl = lfilter([1.0], [1.0, -phi], e)  # AR(1): fl[k] = φ fl[k−1] + e[k]
     grip_mean = grip_of_stiffness(a["k_i"])
     grip_true = grip_mean * (1.0 + rel_sd * fl)
     if grip_m:
@@ -540,8 +572,8 @@ def simulate_trial(
     else:
         refl = world.mech("reflex")
         fric = world.mech("friction")
+        stiff = world.mech("stiffening")
         I_i, Iw = a["I_i"], world.wheel_inertia
-        idx_h = np.array([2, 3])
         lagi = lay.lag
         if lag and lag["form"] == "second_order":
             wn2 = (2 * np.pi * lag["f_hz"]) ** 2
@@ -560,15 +592,14 @@ def simulate_trial(
             d[1] = (ta - td - _friction(fric, om)) / Iw
             rem = x[lay.rem[0]]
             refl_t = x[lay.reflex] if lay.reflex is not None else 0.0
-            d[3] = (td + rem - a["b_i"] * omh - _spring(world, thh, kk) - refl_t) / I_i
+            d[3] = (td + rem - a["b_i"] * omh - _spring(stiff, thh, kk) - refl_t) / I_i
             if len(lay.rem) == 1:
                 d[lay.rem[0]] = wc * (g * wk - rem)
             else:
                 d[lay.rem[0]] = x[lay.rem[1]]
                 d[lay.rem[1]] = wc**2 * (g * wk - rem) - math.sqrt(2) * wc * x[lay.rem[1]]
             if lay.reflex is not None:
-                xd = hist.at(tt - refl["delay_s"], idx_h)
-                drive = refl["k_p"] * xd[0] + refl["k_v"] * xd[1]
+                drive = hist.reflex_drive(tt - refl["delay_s"], refl["k_p"], refl["k_v"])
                 d[lay.reflex] = (drive - refl_t) / refl["tau_act_s"]
             if len(lagi) == 1:
                 d[lagi[0]] = (uk - x[lagi[0]]) / lag["tau_s"]
@@ -623,31 +654,44 @@ def simulate_trial(
     if sd:
         ts = t - sd["delay_s"]
         th_d = np.array([hist.at(tt, [0, 1, 2, 3]) for tt in ts])
-        td_meas = a["k_c"] * (th_d[:, 0] - th_d[:, 2]) + a["b_c"] * (th_d[:, 1] - th_d[:, 3])
+        td_sensed = a["k_c"] * (th_d[:, 0] - th_d[:, 2]) + a["b_c"] * (th_d[:, 1] - th_d[:, 3])
     else:
-        td_meas = td_true.copy()
-    td_meas = td_meas + world.torque_noise_Nm * rng.standard_normal(n)
+        td_sensed = td_true
+
+    # The recorder: one sample per `mc` control cycles, at a control instant. "mean" averages the
+    # angle reads and the torque over the mc cycles ending there; T_p is the command's value.
+    rec_idx = np.arange(n_rec) * mc
+
+    def record(x):
+        if world.record_filter == "none" or mc == 1:
+            return x[rec_idx]
+        c = np.concatenate(([0.0], np.cumsum(x)))
+        lo = np.maximum(rec_idx - mc + 1, 0)
+        return (c[rec_idx + 1] - c[lo]) / (rec_idx + 1 - lo)
+
+    td_meas = record(td_sensed) + world.torque_noise_Nm * rng.standard_normal(n_rec)
     if world.torque_lsb_Nm > 0:
         td_meas = np.round(td_meas / world.torque_lsb_Nm) * world.torque_lsb_Nm
-    grip_meas = grip_true + world.grip_noise_N * rng.standard_normal(n)
+    grip_meas = grip_true[rec_idx] + world.grip_noise_N * rng.standard_normal(n_rec)
     return {
-        "time_s": t,
-        "perturbation_torque_Nm": tp,
+        "time_s": np.arange(n_rec) / world.fs_hz,
+        "perturbation_torque_Nm": tp[rec_idx],
         "driver_torque_Nm": td_meas,
-        "wheel_angle_rad": theta_read,
+        "wheel_angle_rad": record(theta_read),
         "grip_force_N": grip_meas,
         "integrator": integ,
-        "true": {
-            "theta": X[:, 0],
-            "omega": X[:, 1],
-            "theta_h": X[:, 2],
-            "omega_h": X[:, 3],
-            "Td": td_true,
-            "remnant": X[:, lay.rem[0]],
-            "u": u,
-            "applied": applied,
-            "k_i": k_series,
-            "grip": grip_true,
+        "true": {  # at the record instants
+            "theta": X[rec_idx, 0],
+            "omega": X[rec_idx, 1],
+            "theta_h": X[rec_idx, 2],
+            "omega_h": X[rec_idx, 3],
+            "Td": td_true[rec_idx],
+            "remnant": X[rec_idx, lay.rem[0]],
+            "reflex": X[rec_idx, lay.reflex] if lay.reflex is not None else np.zeros(n_rec),
+            "u": u[rec_idx],
+            "applied": applied[rec_idx],
+            "k_i": k_series[rec_idx],
+            "grip": grip_true[rec_idx],
         },
     }
 
@@ -676,8 +720,42 @@ class StudyOptions:
     random_phase: bool = True
     mechanisms: list = field(default_factory=list)
     integrator: str = "auto"
+    control_per_sample: int = 1
+    record_filter: str = "none"
     perturbation_seed: int | None = None  # default: from the study seed
     period_s: float = 45.0  # the perturbation's period (shorter only for fast tests)
+
+
+# Worlds a real lab varies and Steerlab cannot know (issue 13's robustness list), as StudyOptions.
+WORLDS = {
+    "null": {},
+    "inertia_0.05": {"arm_inertia": 0.05},
+    "inertia_0.15": {"arm_inertia": 0.15},
+    "inertia_spread": {"inertia_rel_sd": 0.25},
+    "remnant_x0.5_1Hz": {"remnant_rel": 0.125, "remnant_corner_hz": 1.0},
+    "remnant_x3_0.05Hz": {"remnant_rel": 0.75, "remnant_corner_hz": 0.05},
+    "paper_coherence": {"remnant_rel": 2.0, "remnant_corner_hz": 0.05, "remnant_order": 2},
+    "noisy_sensors": {
+        "angle_noise_rad": 1e-4,
+        "torque_noise_Nm": 0.1,
+        "angle_lsb_rad": 2 * math.pi / 2**14,
+    },
+    "fs_100": {"fs_hz": 100.0},
+    "fs_2000": {"fs_hz": 2000.0},
+    "rig_1k_recorder_250_mean": {"control_per_sample": 4, "record_filter": "mean"},
+    "velocity_difference": {"velocity_source": "difference"},
+    "heavy_rig": {"wheel_inertia": 0.36},
+}
+# One moderate hidden mechanism per family (issue 18's table), for diagnosis studies.
+HIDDEN = {
+    "reflex": mechanism("reflex", "position_velocity", delay_s=0.035),
+    "friction": mechanism("friction", "coulomb"),
+    "stiffening": mechanism("stiffening", "cubic"),
+    "actuator_lag": mechanism("actuator_lag", "first_order", tau_s=0.012),
+    "sensor_delay": mechanism("sensor_delay", "delay", delay_s=0.012),
+    "grip_stiffness": mechanism("grip_stiffness", "power"),
+    "drift": mechanism("drift", "linear", rate=0.04),
+}
 
 
 def _subject_arms(rng, conditions, opts: StudyOptions) -> tuple[float, dict]:
@@ -805,6 +883,8 @@ def generate_study(
                     torque_lsb_Nm=opts.torque_lsb_Nm,
                     mechanisms=[dict(m) for m in opts.mechanisms],
                     integrator=opts.integrator,
+                    control_per_sample=opts.control_per_sample,
+                    record_filter=opts.record_filter,
                 )
                 lo, hi = opts.run_in_s
                 run_in = float(rng.uniform(lo, hi))
@@ -880,6 +960,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--angle-noise", type=float, default=2e-5, help="rad")
     p.add_argument("--torque-noise", type=float, default=0.02, help="N·m")
     p.add_argument("--velocity", choices=("state", "difference"), default="state")
+    p.add_argument("--inertia-sd", type=float, default=0.0, help="subject spread of I_i (rel.)")
+    p.add_argument("--wheel-inertia", type=float, default=WHEEL["I_sw"], help="physical, kg·m²")
+    p.add_argument(
+        "--control-per-sample", type=int, default=1, help="rig loop cycles per recorded sample"
+    )
+    p.add_argument("--record-filter", choices=("none", "mean"), default="none")
+    p.add_argument("--angle-lsb", type=float, default=0.0, help="quantisation step, rad")
+    p.add_argument("--torque-lsb", type=float, default=0.0, help="quantisation step, N·m")
     p.add_argument("--periods", type=int, default=2)
     p.add_argument("--integrator", choices=("auto", "expm", "solve_ivp"), default="auto")
     p.add_argument(
@@ -889,20 +977,83 @@ def _parser() -> argparse.ArgumentParser:
         help="kind:form[:key=value,...], e.g. reflex:position:delay_s=0.035 (repeatable)",
     )
     p.add_argument("--overwrite", action="store_true")
+    p.add_argument(
+        "--world",
+        choices=sorted(WORLDS),
+        help="a named world (WORLDS); its options replace the flags above for those options",
+    )
+    p.add_argument(
+        "--timing", action="store_true", help="only time one trial per integrator (no study)"
+    )
+    p.add_argument(
+        "--report",
+        action="store_true",
+        help="then run `steerlab import` and `steerlab report` (default options) on the study "
+        "(into OUT/sessions, OUT/report; the trials go to OUT/csv) and compare with the truth",
+    )
     return p
+
+
+def time_trials(fs_hz: float = 250.0, n_periods: int = 2, run_in_s: float = 5.0) -> dict:
+    """Wall and CPU seconds for one trial (BT12 arm, I_i 0.07) per integrator and with a
+    nonlinear mechanism; the CSV writing of a study comes on top."""
+    d = Multisine.design(1)
+    arm = {"I_i": 0.07} | DEFAULT_ARM["BT12"]
+    cases = {
+        "expm_null": World(arm=arm, fs_hz=fs_hz, integrator="expm"),
+        "solve_ivp_null": World(arm=arm, fs_hz=fs_hz, integrator="solve_ivp"),
+        "solve_ivp_reflex": World(
+            arm=arm, fs_hz=fs_hz, mechanisms=[mechanism("reflex", "position_velocity")]
+        ),
+        "solve_ivp_friction": World(
+            arm=arm, fs_hz=fs_hz, mechanisms=[mechanism("friction", "stribeck")]
+        ),
+    }
+    out = {"trial_s": run_in_s + n_periods * d.period_s, "fs_hz": fs_hz}
+    for name, w in cases.items():
+        w0, c0 = time.perf_counter(), time.process_time()
+        simulate_trial(w, d, n_periods=n_periods, run_in_s=run_in_s, seed=1)
+        out[name] = {
+            "wall_s": round(time.perf_counter() - w0, 2),
+            "cpu_s": round(time.process_time() - c0, 2),
+        }
+    return out
+
+
+def report_recovery(study_dir: str | Path, csv_dir: str | Path, truth: dict) -> dict:
+    """Run Steerlab on the study, as a user would (its CLI, default options), and compare.
+
+    This is the consumer side: it imports Steerlab's CLI; the world above does not."""
+    from app.cli import main as steerlab
+
+    root = Path(study_dir)
+    t0 = time.perf_counter()
+    for argv in (
+        ["import", str(csv_dir), "--out", str(root / "sessions"), "--overwrite"],
+        ["report", str(root / "sessions"), "--out", str(root / "report")],
+    ):
+        rc = steerlab(argv)
+        if rc != 0:
+            raise OtherworldError(f"steerlab {' '.join(argv)} exited with {rc}")
+    rec = recovery(truth, root / "report" / "per_subject.csv")
+    return {
+        "steerlab_s": round(time.perf_counter() - t0, 1),
+        "median_error": {k: v["median_error"] for k, v in rec["parameters"].items()},
+        "median_abs_error": {k: v["median_abs_error"] for k, v in rec["parameters"].items()},
+    }
 
 
 def main(argv: list[str]) -> dict:
     """``python -m benchmarks otherworld ...``: generate a study; returns timing figures."""
     a = _parser().parse_args(argv)
+    if a.timing:
+        return time_trials(a.fs, a.periods)
     conds = tuple(c.strip() for c in a.conditions.split(",") if c.strip())
     mechs = [parse_mechanism(m) for m in a.mechanism]
-    truth = generate_study(
-        a.out,
-        subjects=a.subjects,
-        conditions=conds,
-        seed=a.seed,
-        overwrite=a.overwrite,
+    csv_dir = Path(a.out) / "csv" if a.report else Path(a.out)
+    if a.report and Path(a.out).exists() and a.overwrite:
+        shutil.rmtree(a.out)
+    options = dict(
         fs_hz=a.fs,
         arm_inertia=a.inertia,
         remnant_rel=a.remnant_rel,
@@ -911,17 +1062,34 @@ def main(argv: list[str]) -> dict:
         angle_noise_rad=a.angle_noise,
         torque_noise_Nm=a.torque_noise,
         velocity_source=a.velocity,
+        inertia_rel_sd=a.inertia_sd,
+        wheel_inertia=a.wheel_inertia,
+        control_per_sample=a.control_per_sample,
+        record_filter=a.record_filter,
+        angle_lsb_rad=a.angle_lsb,
+        torque_lsb_Nm=a.torque_lsb,
         n_periods=a.periods,
         integrator=a.integrator,
         mechanisms=mechs,
+    ) | (WORLDS[a.world] if a.world else {})
+    truth = generate_study(
+        csv_dir,
+        subjects=a.subjects,
+        conditions=conds,
+        seed=a.seed,
+        overwrite=a.overwrite,
+        **options,
     )
-    return {
+    result = {
         "out": str(a.out),
         "trials": truth["n_trials"],
         "seconds": round(truth["generation_s"], 2),
         "seconds_per_trial": round(truth["generation_s"] / truth["n_trials"], 3),
         "integrators": sorted({t["integrator"] for t in truth["trials"].values()}),
     }
+    if a.report:
+        result |= report_recovery(a.out, csv_dir, truth)
+    return result
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -931,10 +1099,6 @@ def cli(argv: list[str] | None = None) -> int:
         print(f"otherworld: {e}", file=sys.stderr)
         return 2
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(cli())
 
 
 # -- recovery: Steerlab's estimates against this world's truth ------------------------------------
@@ -978,3 +1142,7 @@ def recovery(truth: dict | str | Path, per_subject_csv: str | Path) -> dict:
             "n": int(np.sum(np.isfinite(v))),
         }
     return {"cells": cells, "parameters": med}
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

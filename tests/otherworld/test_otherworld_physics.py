@@ -239,3 +239,81 @@ def test_multisine_design_follows_the_method():
     np.testing.assert_allclose(red / full[0], 0.1)
     # starting phase: value(t + offset) is the same signal shifted
     np.testing.assert_allclose(d.value(t + 45.0 + 7.0), x, atol=1e-9)
+
+
+def test_sensor_noise_and_quantisation():
+    d = Multisine.design(20, period_s=PERIOD)
+    lsb_a, lsb_t = 2 * np.pi / 2**16, 0.01
+    w = quiet_world("BT8", 200.0, angle_lsb_rad=lsb_a, torque_lsb_Nm=lsb_t, torque_noise_Nm=0.05)
+    rec = simulate_trial(w, d, n_periods=1, run_in_s=1.0, seed=8)
+    for c, lsb in (("wheel_angle_rad", lsb_a), ("driver_torque_Nm", lsb_t)):
+        q = rec[c] / lsb
+        np.testing.assert_allclose(q, np.round(q), atol=1e-6)
+    # the torque noise is white with the requested SD (quantisation adds lsb²/12)
+    e = rec["driver_torque_Nm"] - rec["true"]["Td"]
+    assert e.std() == pytest.approx(np.sqrt(0.05**2 + lsb_t**2 / 12), rel=0.05)
+    assert abs(np.corrcoef(e[:-1], e[1:])[0, 1]) < 0.05
+
+
+def test_a_heavier_rig_changes_the_wheel_not_the_arm():
+    """The rig's physical inertia enters the wheel equation (Table-1 residual grows as
+    ΔI·ω²·θ) but not θ/T_d."""
+    fs = 250.0
+    d = Multisine.design(25, period_s=PERIOD)
+    w = quiet_world("BT12", fs, wheel_inertia=0.4)
+    rec = simulate_trial(w, d, run_in_s=2.0, n_periods=1, seed=9)
+    f, H = csd_frf(rec, d, fs, n_periods=1)
+    np.testing.assert_allclose(H[f < 5], admittance(w.arm, f[f < 5]), rtol=2e-3)
+    n = int(PERIOD * fs)
+    sp = {
+        c: np.fft.rfft(rec[c][-n:])[d.bins]
+        for c in ("perturbation_torque_Nm", "driver_torque_Nm", "wheel_angle_rad")
+    }
+    s = 2j * np.pi * f
+    th = sp["wheel_angle_rad"]
+    resid = (
+        sp["perturbation_torque_Nm"] - sp["driver_torque_Nm"] - (I_W * s**2 + B_SW * s + K_SW) * th
+    )
+    u = sp["perturbation_torque_Nm"] - (B_SW * s + K_SW) * th
+    zoh = (1 - np.exp(-s / fs)) / (s / fs)
+    expected = (1 - zoh) * u + (0.4 - I_W) * s**2 * th
+    np.testing.assert_allclose(resid, expected, rtol=0.01, atol=1e-3 * np.abs(u).max())
+
+
+def _rec_spectra(rec, d, fs):
+    n = int(round(d.period_s * fs))
+    return {
+        c: np.fft.rfft(rec[c][-n:])[d.bins]
+        for c in ("perturbation_torque_Nm", "driver_torque_Nm", "wheel_angle_rad")
+    }
+
+
+@pytest.mark.parametrize("record_filter", ["none", "mean"])
+def test_rig_loop_faster_than_the_recorder(record_filter):
+    """The rig renders at 1 kHz, the recorder keeps 250 Hz: the hold is the 1 kHz one. With a
+    boxcar recorder filter F (mean of the 4 cycles ending at the record instant) on angle and
+    torque, but T_p recorded as commanded, θ/T_d is unchanged and the wheel residual becomes
+    T_p (1 − F) + (1 − ZOH_1k)(F T_p − (b s + k) θ_rec)."""
+    fs, m = 250.0, 4
+    d = Multisine.design(26, period_s=PERIOD)
+    w = quiet_world("BT12", fs, control_per_sample=m, record_filter=record_filter)
+    rec = simulate_trial(w, d, run_in_s=2.0, n_periods=1, seed=10)
+    assert len(rec["time_s"]) == int(12.0 * fs)
+    sp = _rec_spectra(rec, d, fs)
+    f = d.frequencies_hz
+    s = 2j * np.pi * f
+    H = sp["wheel_angle_rad"] / sp["driver_torque_Nm"]
+    np.testing.assert_allclose(H, admittance(w.arm, f), rtol=2e-3)
+    tp, td, th = sp["perturbation_torque_Nm"], sp["driver_torque_Nm"], sp["wheel_angle_rad"]
+    resid = tp - td - (I_W * s**2 + B_SW * s + K_SW) * th
+    hc = 1 / (fs * m)
+    zoh = (1 - np.exp(-s * hc)) / (s * hc)
+    F = (
+        np.ones_like(s)
+        if record_filter == "none"
+        else np.exp(-s * hc * np.arange(m)[:, None]).mean(0)
+    )
+    expected = tp * (1 - F) + (1 - zoh) * (F * tp - (B_SW * s + K_SW) * th)
+    np.testing.assert_allclose(resid, expected, rtol=0.01, atol=1e-3 * np.abs(tp).max())
+    if record_filter == "none":  # 4× smaller than the 250 Hz rig's hold residual
+        assert np.abs(resid / (tp - (B_SW * s + K_SW) * th))[-1] < 0.07
