@@ -119,13 +119,8 @@ def test_report_runs_and_its_estimates_follow_the_truth(study):
     # recovery() is the tool; see the report of this branch for the figures.
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=ZeroDivisionError,
-    reason="analysis/stats.py mauchly(): 2 subjects × 3 conditions divides by zero "
-    "(f = 1 − (2d²+d+2)/(6 d (n−1)) = 0 for n = 2, d = 2); not this branch's code",
-)
 def test_report_on_two_subjects_three_conditions(tmp_path):
+    # The issue-18 study shape; Mauchly's test used to divide by zero here (n = 2, d = 2).
     generate_study(tmp_path / "csv", subjects=2, conditions=("BT18", "BT8", "PT"), seed=1, **FAST)
     assert steerlab(["import", str(tmp_path / "csv"), "--out", str(tmp_path / "s")]) == 0
     assert steerlab(["report", str(tmp_path / "s"), "--out", str(tmp_path / "r")]) == 0
