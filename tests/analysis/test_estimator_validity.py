@@ -19,6 +19,9 @@ from analysis.pipeline import Check, _explain_pairs, statistics_table
 from tests.analysis.synthetic_trials import make_trial
 
 ALL = ("I_i", "b_i", "k_i", "b_c", "k_c")
+# make_trial samples the continuous steady state ideally (no held command): exact recovery is
+# checked against the continuous model.
+IDEAL = FitOptions(sampling="ideal")
 
 
 def test_smoothed_noise_spectrum_is_unbiased_and_far_less_scattered():
@@ -68,7 +71,7 @@ def _frf(arm, **kw):
 
 def test_joint_fit_shares_one_inertia_and_recovers_every_parameter():
     frfs = [_frf(a) for a in ARMS.values()]
-    joint = fit_arm_joint(frfs, labels=list(ARMS))
+    joint = fit_arm_joint(frfs, IDEAL, labels=list(ARMS))
     assert joint.mode == "subject" and joint.labels == tuple(ARMS)
     assert joint.I_i == pytest.approx(0.07, rel=1e-5)
     for (name, arm), fit in zip(ARMS.items(), joint.fits, strict=True):
@@ -87,8 +90,8 @@ def test_a_held_inertia_biases_the_others_as_the_sensitivity_predicts():
     # within a factor of 2), and in its direction.
     frfs = [_frf(a, remnant_sd=0.2, theta_noise_sd=1e-4, td_noise_sd=0.02, seed=3)
             for a in ARMS.values()]  # fmt: skip
-    joint = fit_arm_joint(frfs)
-    held = fit_arm_joint(frfs, FitOptions(inertia="fixed", I_i=1.1 * joint.I_i))
+    joint = fit_arm_joint(frfs, IDEAL)
+    held = fit_arm_joint(frfs, FitOptions(inertia="fixed", I_i=1.1 * joint.I_i, sampling="ideal"))
     for fit, fit_h in zip(joint.fits, held.fits, strict=True):
         predicted = 0.1 * joint.I_i * fit.inertia_sensitivity["k_i"]
         actual = fit_h.params.k_i - fit.params.k_i
@@ -201,3 +204,34 @@ def test_report_compares_the_weightings_and_says_what_it_used(other_lab_study):
     opts = res["provenance"]["analysis_options"]["fit"]
     assert opts["weighting"] == "inverse_variance" and opts["inertia"] == "subject"
     assert isinstance(res["warnings"], list)
+
+
+def test_sampled_data_model_removes_the_aliasing_bias():
+    # Ĥ as a rig that holds its command at 100 Hz measures it (the exact image sum, 40 per
+    # side, computed here independently of the fit's 30), fitted with and without the
+    # sampled-data term: with it the arm comes back; without it the contact terms are biased.
+    from types import SimpleNamespace
+
+    from analysis.armfit import _H, sampled_admittance
+
+    arm = ARMS["BT12"]
+    f = np.geomspace(0.08, 20, 31)
+    s = 2j * np.pi * f
+    num = den = 0
+    for m in range(-40, 41):
+        sm = s + 2j * np.pi * m * 100.0
+        z = (1 - np.exp(-sm / 100.0)) / (sm / 100.0)
+        p = z / (0.3 * sm**2 + 1 / _H(arm, sm))
+        num, den = num + p, den + p / _H(arm, sm)
+    exact = num / den
+    np.testing.assert_allclose(sampled_admittance(arm, s, 100.0), exact, rtol=1e-3)
+    assert np.max(np.abs(exact / _H(arm, s) - 1)) > 0.05  # the effect is real at 100 Hz
+    est = SimpleNamespace(
+        frequencies_hz=f, H=exact, coherence=np.ones_like(f),
+        H_variance=np.abs(exact) ** 2 * 1e-4, fs_hz=100.0,
+    )  # fmt: skip
+    zoh = fit_arm(est)
+    ideal = fit_arm(est, FitOptions(sampling="ideal"))
+    for n in ALL:
+        assert getattr(zoh.params, n) == pytest.approx(arm[n], rel=0.005), n
+    assert abs(ideal.params.k_c / arm["k_c"] - 1) > 0.03
