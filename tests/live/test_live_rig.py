@@ -14,6 +14,7 @@ from protocols import events as ev
 from protocols.datafile import SessionFile, SessionWriter
 from protocols.engine import SessionEngine, State
 from protocols.session import build_plan
+from tests.hardware.can_wire import wait_for
 
 
 def _session(devices, protocol, tmp_path, loop: DeviceLoop | None = None, inject=None, at_s=1.5):
@@ -65,6 +66,7 @@ FAULTS = {
     "drive heartbeat lost": (lambda d, loop: d.node.stop_heartbeat(), r"drive lost: no heartbeat"),
     "drive EMCY fault": (lambda d, loop: d.node.inject_fault(0x2310), r"drive fault: .*0x2310"),
     "CAN send failure": (lambda d, loop: d._buses[-1].shutdown(), r"drive fault: .*(not sent|bus)"),
+    "drive link silent": (lambda d, loop: d.node.go_silent(), r"drive (lost|fault)"),
     "glove pty closed": (
         lambda d, loop: d.glove_sim.hang_up(),
         r"glove (unit failed|stream stopped)",
@@ -84,7 +86,7 @@ def test_each_fault_aborts_the_trial_keeps_samples_and_stops_the_motor(
     t_inject = []
 
     def do():
-        t_inject.append(time.perf_counter())
+        t_inject.append(time.monotonic())
         inject(devices, loop)
 
     state, recs, seen = _session(devices, short_protocol, tmp_path, loop=loop, inject=do)
@@ -96,11 +98,16 @@ def test_each_fault_aborts_the_trial_keeps_samples_and_stops_the_motor(
     emitted = sum(e.n for e in seen if isinstance(e, ev.SamplesAcquired))
     assert r.n_samples == emitted >= 1500
     assert r.attrs["marks"][-1]["kind"] == "abort"
-    # The motor was left at zero torque and disabled.
+    # The motor was left at zero torque and disabled, at the drive itself: where the host's
+    # frames no longer reach it (bus-off, a cut link), by its own watch on the host (0x1016).
     assert not devices.drive.enabled
-    if fault != "CAN send failure":  # the node never hears from a dead bus
+    assert wait_for(lambda: devices.node.applied_torque_nm == 0.0, timeout=2.0)
+    assert devices.node.statusword & 0x6F != 0x27  # not OPERATION ENABLED
+    if fault in ("CAN send failure", "drive link silent"):
+        assert devices.node.host_heartbeats_lost == 1
+        assert devices.node.zero_torque_since - t_inject[0] < 0.08 + 0.5
+    else:
         assert devices.node.target_torque_permille == 0
-        assert devices.node.statusword & 0x6F != 0x27  # not OPERATION ENABLED
 
 
 class SlowDisplay:
