@@ -29,6 +29,10 @@ from .frames import (
 TorqueSensorSource = Literal["pdo", "node", "none"]
 VelocityUnit = Literal["counts_per_s", "rpm"]
 
+#: Steerlab's own interface: a bus shared between processes of this machine
+#: (:mod:`hardware.can.udp_bus`), for simulated devices in a process of their own.
+UDP_LOOPBACK = "udp_loopback"
+
 CAN_BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
 
 
@@ -306,7 +310,7 @@ def _validate(cfg: DriveConfig) -> None:
     src = cfg.source
     c = _Check(cfg, src, "drive")
     node_id = c.int_("node_id", 1, 127)
-    c.choice("interface", tuple(sorted(can.interfaces.VALID_INTERFACES)))
+    c.choice("interface", tuple(sorted(can.interfaces.VALID_INTERFACES | {UDP_LOOPBACK})))
     if isinstance(cfg.channel, bool) or not isinstance(cfg.channel, str | int) or cfg.channel == "":
         raise c.fail("channel", f"expected a non-empty string or an integer, {c.got('channel')}")
     c.choice("bitrate", CAN_BITRATES)
