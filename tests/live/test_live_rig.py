@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -97,6 +98,7 @@ def test_each_fault_aborts_the_trial_keeps_samples_and_stops_the_motor(
     # Every sample the loop produced is in the file, up to the fault.
     emitted = sum(e.n for e in seen if isinstance(e, ev.SamplesAcquired))
     assert r.n_samples == emitted >= 1500
+    assert loop.trial_stats()["samples"] == r.n_samples  # none lost, the last block's too
     assert r.attrs["marks"][-1]["kind"] == "abort"
     # The motor was left at zero torque and disabled, at the drive itself: where the host's
     # frames no longer reach it (bus-off, a cut link), by its own watch on the host (0x1016).
@@ -108,6 +110,30 @@ def test_each_fault_aborts_the_trial_keeps_samples_and_stops_the_motor(
         assert devices.node.zero_torque_since - t_inject[0] < 0.08 + 0.5
     else:
         assert devices.node.target_torque_permille == 0
+
+
+def test_nan_command_mid_trial_aborts_with_zero_torque(devices, short_protocol, tmp_path):
+    loop = devices.device_loop()
+    run, live = loop.run_trial, {}
+
+    def writable(setup, control):  # the trial's perturbation, where the test can reach it
+        live["tp"] = setup.perturbation_nm.copy()
+        return run(replace(setup, perturbation_nm=live["tp"]), control)
+
+    loop.run_trial = writable
+
+    def inject():
+        live["tp"][:] = np.nan  # from the next cycle on
+
+    state, recs, seen = _session(devices, short_protocol, tmp_path, loop=loop, inject=inject)
+    (r,) = recs
+    assert r.status == "aborted"
+    assert "non-finite motor command input: perturbation_torque_Nm = nan" in r.abort_reason
+    emitted = sum(e.n for e in seen if isinstance(e, ev.SamplesAcquired))
+    assert r.n_samples == emitted == loop.trial_stats()["samples"] >= 1500
+    assert np.all(np.isfinite(r.extra["motor_command_Nm"]))
+    assert wait_for(lambda: devices.node.applied_torque_nm == 0.0, timeout=2.0)
+    assert devices.node.target_torque_permille == 0 and not devices.drive.enabled
 
 
 class SlowDisplay:
