@@ -19,7 +19,7 @@ from pathlib import Path
 
 from hardware.live import ProcessLoop
 from hardware.rig import load_rig
-from protocols.datafile import SessionFile, SessionWriter
+from protocols.datafile import SessionFile, SessionWriter, check_free_space, session_bytes
 from protocols.engine import SessionEngine, State
 from protocols.events import StateChanged, TrialEnded, TrialStarted
 from protocols.protocol import load_protocol
@@ -63,6 +63,7 @@ def run_session(
             raise RunError(f"{path}: was recorded with a different protocol; cannot resume")
         attempts = sf.attempts()
     out.mkdir(parents=True, exist_ok=True)
+    check_free_space(out, session_bytes(plan))
 
     say(f"bringing up the rig ({rig.source}) ...")
     loop = ProcessLoop(rig_path, subject_number)

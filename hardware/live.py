@@ -369,6 +369,7 @@ class ProcessLoop:
         done = threading.Event()
         forwarder = threading.Thread(target=self._forward, args=(control, done), daemon=True)
         forwarder.start()
+        ended = False
         try:
             while True:
                 try:
@@ -384,6 +385,7 @@ class ProcessLoop:
                 elif kind == "status":
                     self.status = payload
                 elif kind == "end":
+                    ended = True
                     self._stats = payload["stats"]
                     self.status = payload["status"]
                     if payload["fault"]:
@@ -392,6 +394,30 @@ class ProcessLoop:
         finally:
             done.set()
             forwarder.join(1.0)
+            if not ended and self._proc.is_alive():
+                # The engine let go of the trial (its writer failed, it was cut off, …): the
+                # loop must not go on applying the perturbation. Zero torque at its next cycle.
+                self._stop_trial()
+
+    def _stop_trial(self, timeout_s: float = 5.0) -> None:
+        self._estop.set()
+        try:
+            with self._lock:
+                self._conn.send(("abort", "the engine stopped the trial"))
+        except (OSError, BrokenPipeError):
+            return
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:  # its remaining blocks, then its end
+            try:
+                kind, payload = self._q.get(timeout=0.1)
+            except queue.Empty:
+                if not self._proc.is_alive():
+                    return
+                continue
+            if kind == "end":
+                self._stats = payload["stats"]
+                self.status = payload["status"]
+                return
 
     def _forward(self, control: LoopControl, done: threading.Event) -> None:
         """Pass pause and abort on to the loop process, even while the engine is not pulling."""

@@ -29,6 +29,7 @@ def lenient_rig(tmp_path):
     # load the CPU, so a late cycle must not abort these trials.
     text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
     p = tmp_path / "rig.toml"
+    text = text.replace("host_heartbeat_timeout_ms = 80 ", "host_heartbeat_timeout_ms = 100 ")
     p.write_text(text.replace("loop_stall_s = 0.02 ", "loop_stall_s = 0.5 "))
     assert "loop_stall_s = 0.5" in p.read_text()
     return p
