@@ -35,7 +35,7 @@ from hardware.can import (
     open_bus,
 )
 from hardware.glove.unit import SerialGloveUnit
-from hardware.loop import DEFAULT_BLOCK_S, DeviceLoop
+from hardware.loop import DEFAULT_BLOCK_S, SPIN_S, DeviceLoop
 from hardware.rig import RigConfig, load_rig
 from protocols.engine import LoopControl, TrialFault
 from protocols.session import TrialSetup
@@ -167,7 +167,13 @@ class RigDevices:
             period = 1.0 / self.rig.loop_rate_hz
             t0 = time.perf_counter()
             for i in range(int(ZEROING_S * self.rig.loop_rate_hz)):
-                while time.perf_counter() < t0 + i * period:
+                # Sleep most of the wait, as the loop does: a busy wait under SCHED_FIFO would
+                # starve the process's other threads (the host heartbeat the drive watches).
+                due = t0 + i * period
+                wait = due - time.perf_counter()
+                if wait > SPIN_S + 1e-4:
+                    time.sleep(wait - SPIN_S)
+                while time.perf_counter() < due:
                     pass
                 self.drive.set_torque(0.0)
                 self.drive.sync()
@@ -342,7 +348,10 @@ class ProcessLoop:
             name="steerlab-loop",
             daemon=True,
         )
-        self._proc.start()
+        from hardware.realtime import single_threaded_math_for_children
+
+        with single_threaded_math_for_children():
+            self._proc.start()
         try:
             kind, payload = self._q.get(timeout=start_timeout_s)
         except queue.Empty:

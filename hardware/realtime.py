@@ -14,14 +14,37 @@ What a lab does for hard guarantees, and what Steerlab does:
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import os
 import sys
 
+#: For a process that will run under SCHED_FIFO: BLAS and OpenMP worker threads busy-wait for
+#: work, and at real-time priority two such processes (two sessions on one machine) starve each
+#: other for good (seen: two loop processes stuck in scipy's expm at start-up). The loop's linear
+#: algebra is 4×4; one thread is all it needs. Set before numpy is imported (in the child).
+SINGLE_THREADED_MATH = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
 SWITCH_INTERVAL_S = 2e-4
 FIFO_PRIORITY = 20
 MCL_CURRENT, MCL_FUTURE = 1, 2
+
+
+@contextlib.contextmanager
+def single_threaded_math_for_children():
+    """Within the block, child processes started (spawn, subprocess) get
+    :data:`SINGLE_THREADED_MATH` in their environment."""
+    saved = {k: os.environ.get(k) for k in SINGLE_THREADED_MATH}
+    os.environ.update(SINGLE_THREADED_MATH)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def tune_process(*, fifo: bool = True, lock_memory: bool = True) -> dict:

@@ -47,6 +47,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -256,6 +257,7 @@ class _HostHeartbeat:
             self.sent += 1
 
     def _run(self) -> None:
+        _above_the_loop()
         due = time.monotonic()
         while True:
             self.beat()
@@ -265,6 +267,18 @@ class _HostHeartbeat:
                 due = now + self._period
             if self._stop.wait(due - now):
                 return
+
+
+def _above_the_loop() -> None:
+    """Under SCHED_FIFO, run this thread one priority above the rest of the process: a thread
+    of the same FIFO priority is not time-sliced, so a control loop that spins would hold the
+    heartbeat off its core (and the drive would cut the torque). Nothing to do otherwise."""
+    try:
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            prio = os.sched_getparam(0).sched_priority
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(min(prio + 1, 99)))
+    except (AttributeError, OSError):
+        pass
 
 
 def _pdo_writes(

@@ -339,7 +339,8 @@ class SimulatedDrive:
         # consumer heartbeat (0x1016:01): producer node, timeout s, last heartbeat (None:
         # not monitoring; CiA 301 starts monitoring at the first heartbeat after configuration)
         self._consumer: tuple[int, float] | None = None
-        self._consumer_last: float | None = None
+        self._consumer_last: float | None = None  # bus timestamp (time.time()) of the last one
+        self._bus_time: float | None = None  # bus timestamp of the newest frame since the tick
         self.host_heartbeats_lost = 0
         self.connection_lost_at: float | None = None
 
@@ -454,6 +455,7 @@ class SimulatedDrive:
         with self._lock:
             if self._silent:
                 return
+            self._bus_time = msg.timestamp
             try:
                 if cid == SYNC_COB_ID and len(msg.data) <= 1:
                     self._on_sync()
@@ -465,7 +467,7 @@ class SimulatedDrive:
                     else:
                         self.ignored_frames += 1
                 elif self._consumer is not None and cid == 0x700 + self._consumer[0]:
-                    self._consumer_last = time.monotonic()
+                    self._consumer_last = msg.timestamp
                 else:
                     self._refresh_layouts()
                     if self._rpdo is not None and cid == self._rpdo[0]:
@@ -481,12 +483,18 @@ class SimulatedDrive:
             self._apply(0.0)
 
     def _on_tick(self, now: float) -> None:
-        """The drive's own watch on its host, run at least every 2 ms even on a silent bus."""
+        """The drive's own watch on its host, run at least every 2 ms even on a silent bus.
+
+        Times are the frames' bus timestamps (wall clock at sending): a real drive sees each
+        frame when it is on the wire, whereas this thread may run late on a busy computer and
+        find frames queued. Until the queue is drained, the newest frame taken is "now"."""
         with self._lock:
             last = self._consumer_last
             if self._consumer is None or last is None:
                 return
-            if now - last <= self._consumer[1]:
+            bus_now = self._bus_time if self._bus_time is not None else time.time()
+            self._bus_time = None  # the next idle tick (no frame meanwhile) uses the clock
+            if bus_now - last <= self._consumer[1]:
                 return
             # CiA 301 heartbeat consumer: the producer is lost; monitoring stops until its
             # next heartbeat. CiA 402: react per the abort connection option code 0x6007.

@@ -9,7 +9,8 @@ have.)
 
 Every bus on one ``channel`` (a name: it picks the UDP port) receives every frame the others
 send, in order per sender. One datagram per frame: 8 bytes sender id, then CAN id (u32),
-flags (u8: 1 extended, 2 remote, 4 error frame), DLC (u8) and 8 data bytes. Nothing leaves the
+flags (u8: 1 extended, 2 remote, 4 error frame), DLC (u8), 8 data bytes and the send time
+(time.time(), f64: the frame's timestamp, as python-can's virtual bus gives it). Nothing leaves the
 machine (multicast TTL 0, loopback interface).
 """
 
@@ -25,7 +26,7 @@ import zlib
 import can
 
 GROUP = "239.74.163.2"
-_FRAME = struct.Struct("<IBB8s")
+_FRAME = struct.Struct("<IBB8sd")
 _EXT, _RTR, _ERR = 1, 2, 4
 
 
@@ -77,7 +78,7 @@ class UdpLoopbackBus(can.BusABC):
             | (_ERR if msg.is_error_frame else 0)
         )
         data = bytes(msg.data)
-        payload = self._id + _FRAME.pack(msg.arbitration_id, flags, len(data), data)
+        payload = self._id + _FRAME.pack(msg.arbitration_id, flags, len(data), data, time.time())
         try:
             sock.sendto(payload, (GROUP, self._port))
         except OSError as e:
@@ -96,9 +97,9 @@ class UdpLoopbackBus(can.BusABC):
             raise can.CanOperationError(f"{self.channel_info}: {e}") from e
         if len(payload) != 8 + _FRAME.size or (payload[:8] == self._id and not self._own):
             return None, False
-        cid, flags, dlc, data = _FRAME.unpack_from(payload, 8)
+        cid, flags, dlc, data, sent = _FRAME.unpack_from(payload, 8)
         msg = can.Message(
-            timestamp=time.time(),
+            timestamp=sent,
             arbitration_id=cid,
             is_extended_id=bool(flags & _EXT),
             is_remote_frame=bool(flags & _RTR),

@@ -172,8 +172,16 @@ class LabProcess:
         cmd = [sys.executable, "-m", "hardware.sim.lab", "--channel", self.channel]
         if rig_path is not None:
             cmd += ["--rig", str(rig_path)]
+        from hardware.realtime import SINGLE_THREADED_MATH
+
         self.proc = subprocess.Popen(
-            cmd, cwd=root, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1
+            cmd,
+            cwd=root,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            bufsize=1,
+            env={**os.environ, **SINGLE_THREADED_MATH},
         )
         self._lock = threading.Lock()
         ready = self._read(start_timeout_s)

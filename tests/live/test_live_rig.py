@@ -180,7 +180,9 @@ def test_corrupted_serial_bytes_are_counted_not_fatal(devices, short_protocol, t
         threading.Thread(target=spaced, daemon=True).start()
 
     state, recs, _ = _session(devices, short_protocol, tmp_path, inject=corrupt)
-    assert state is State.DONE and all(r.status == "complete" for r in recs)
+    assert state is State.DONE and all(r.status == "complete" for r in recs), [
+        r.abort_reason for r in recs
+    ]
     st = devices.glove.stats()
     assert st.crc_errors >= 3 and st.out_of_range == 2 and st.resyncs >= 1
     # Every damaged frame was rejected: 3 bad CRCs + 2 flipped bytes (wherever the flip lands:

@@ -172,7 +172,7 @@ def test_steerlab_run_and_stop(tmp_path, short_protocol_file, lenient_rig):
     p = _steerlab(
         "run", "--subject", 1, "--out", out, "--protocol", short_protocol_file, "--rig", lenient_rig
     )
-    pidfile = out / "steerlab-run.pid"
+    pidfile = out / "steerlab-run-S01.pid"
     deadline = time.monotonic() + 60
     # Stop it from "another terminal" once the first trial is under way.
     assert wait_for_samples(out / "S01.h5", 1500, deadline) and pidfile.exists()
