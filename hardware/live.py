@@ -188,13 +188,21 @@ class RigDevices:
         if d.heartbeat_lost:
             return "drive lost: no heartbeat"
         if not d.ok:
+            # The first active fault is the cause (an EMCY); later ones follow from it (the
+            # drive then leaves OPERATION ENABLED).
             faults = d.active_faults
-            return f"drive fault: {faults[-1]}" if faults else "drive not ready"
+            if not faults:
+                return "drive not ready"
+            more = f" (and {len(faults) - 1} more)" if len(faults) > 1 else ""
+            return f"drive fault: {faults[0]}{more}"
         if g.error is not None:
             return f"glove unit failed: {g.error}"
         age = g.age_s()
         if age is None or age > self.rig.safety.glove_timeout_s:
-            return f"glove stream stopped: no frame for {'ever' if age is None else f'{age:.2f} s'}"
+            crc = g.stats().crc_errors
+            damaged = f" ({crc} frames with a bad CRC so far)" if crc else ""
+            since = "ever" if age is None else f"{age:.2f} s"
+            return f"glove stream stopped: no valid frame for {since}{damaged}"
         return None
 
     def status(self) -> dict:
@@ -291,9 +299,11 @@ def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: 
             control = LoopControl()
             fault = None
             closing = False
+            # A writable perturbation, so that an injected fault ("nan") can reach it.
+            setup = replace(msg[1], perturbation_nm=np.array(msg[1].perturbation_nm))
             gc.disable()  # no collection pauses inside the loop; collect between trials
             try:
-                for i, block in enumerate(loop.run_trial(msg[1], control)):
+                for i, block in enumerate(loop.run_trial(setup, control)):
                     out.put(("block", block))
                     if i % status_every == 0:
                         out.put(("status", devices.status()))
@@ -305,6 +315,8 @@ def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: 
                             control.paused.set()
                         elif m[0] == "close":
                             control.abort_reason, closing = "the session was closed", True
+                        elif m[0] == "inject":
+                            out.put(("injected", (m[1], _inject(m[1], devices, setup))))
             except TrialFault as f:
                 fault = str(f)
             except Exception as e:
@@ -321,6 +333,24 @@ def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: 
                 break
     finally:
         devices.close()
+
+
+#: Faults :meth:`ProcessLoop.inject` can put into the loop process's running trial (tests and
+#: ``python -m benchmarks faults``): the host's CAN bus goes bus-off, the loop thread hangs for
+#: 0.2 s, the perturbation turns NaN.
+HOST_FAULTS = ("bus_off", "hang", "nan")
+
+
+def _inject(fault: str, devices: RigDevices, setup: TrialSetup) -> float:
+    """Inject ``fault`` now, on the loop's thread, between two blocks; its time.monotonic()."""
+    t = time.monotonic()
+    if fault == "bus_off":
+        devices.drive._bus.shutdown()
+    elif fault == "hang":
+        time.sleep(0.2)
+    elif fault == "nan":
+        setup.perturbation_nm[:] = np.nan
+    return t
 
 
 class ProcessLoop:
@@ -340,6 +370,7 @@ class ProcessLoop:
         self._q: mp.Queue = ctx.Queue()
         self._stats: dict = {}
         self.status: dict = {}
+        self.injected: dict[str, float] = {}
         self.physiology: dict | None = None
         self._lock = threading.Lock()
         self._proc = ctx.Process(
@@ -367,6 +398,15 @@ class ProcessLoop:
     def emergency_stop(self) -> None:
         self._estop.set()
 
+    def inject(self, fault: str) -> None:
+        """Fault injection for tests and benchmarks (:data:`HOST_FAULTS`): done by the loop
+        process between two blocks of the running trial; the time it was done
+        (time.monotonic()) then appears in :attr:`injected`."""
+        if fault not in HOST_FAULTS:
+            raise ValueError(f"unknown fault {fault!r} (known: {', '.join(HOST_FAULTS)})")
+        with self._lock:
+            self._conn.send(("inject", fault))
+
     def trial_stats(self) -> dict:
         return dict(self._stats)
 
@@ -393,6 +433,8 @@ class ProcessLoop:
                     yield payload
                 elif kind == "status":
                     self.status = payload
+                elif kind == "injected":
+                    self.injected[payload[0]] = payload[1]
                 elif kind == "end":
                     ended = True
                     self._stats = payload["stats"]

@@ -345,6 +345,8 @@ class SessionWriter:
         self.f.swmr_mode = True
 
     def _samples(self, e: ev.SamplesAcquired) -> None:
+        # Both checks every block (a stat and a statvfs, microseconds): the trial ends within
+        # one block of the file going away or the disk filling up.
         if not self._still_ours():
             raise WriterFailure(f"{self.path}: the session file was removed or replaced")
         if e.key != self._key:
@@ -357,6 +359,7 @@ class SessionWriter:
         for k, v in e.channels.items():
             self._buf[k].append(np.asarray(v))
         self._buffered += e.n
+        self._check_space()  # on failure, this block too goes into the reserve
         now = self.clock()
         if self._buffered >= self.chunk_samples or now - self._last_flush >= self.flush_interval_s:
             self._write_out()
@@ -367,8 +370,6 @@ class SessionWriter:
     def _write_out(self) -> None:
         if self._key is None or self.f is None:
             return
-        if self.failure is None:
-            self._check_space()
         g = self.f["trials"][self._key]
         if self._buffered:
             n0, n1 = self._written, self._written + self._buffered

@@ -348,6 +348,7 @@ class SimulatedDrive:
         self.mute_pdo = False
         self._silent = False
         self.sync_count = 0
+        self.enabled_syncs = 0  # SYNCs met in OPERATION ENABLED: the host's control cycles
         self.ignored_frames = 0
         self.errors: list[BaseException] = []
         self._reader = BusReader(
@@ -583,6 +584,8 @@ class SimulatedDrive:
             self._rpdo_pending = None
         torque = self._motor_torque_nm()
         self._apply(torque)
+        if self.state is State402.OPERATION_ENABLED:
+            self.enabled_syncs += 1
         try:
             self.plant.step(torque)
             self._latch_plant()

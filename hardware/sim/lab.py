@@ -95,6 +95,7 @@ class SimulatedLab:
             "host_heartbeats_lost": n.host_heartbeats_lost,
             "connection_lost_at": n.connection_lost_at,
             "sync_count": n.sync_count,
+            "enabled_syncs": n.enabled_syncs,
             "errors": [repr(e) for e in n.errors],
         }
 
@@ -149,8 +150,9 @@ def main(argv: list[str] | None = None) -> int:
                 if op == "status":
                     say(lab.status())
                 elif op == "inject":
+                    t = time.monotonic()
                     lab.inject(cmd["fault"])
-                    say({"t": time.monotonic(), "injected": cmd["fault"]})
+                    say({"t": t, "injected": cmd["fault"]})
                 elif op == "close":
                     say({"closed": True})
                     break

@@ -165,8 +165,12 @@ def test_free_space_check_names_both_figures(tmp_path):
     with pytest.raises(DataFileError) as e:
         check_free_space(tmp_path, 10 * free)
     msg = str(e.value)
-    assert str(tmp_path) in msg and f"{free / 1e6:.0f}" in msg.replace(".", "", 0)
-    assert f"needs {10 * free / 1e6:.1f} MB" in msg
+    import re
+
+    m = re.search(r"(\d+\.\d) MB free, the session needs (\d+\.\d) MB", msg)
+    assert str(tmp_path) in msg and m, msg
+    assert float(m.group(1)) == pytest.approx(free / 1e6, rel=0.01)
+    assert float(m.group(2)) == pytest.approx(10 * free / 1e6, rel=1e-6)
 
 
 def test_steerlab_run_refuses_a_disk_too_small_for_the_session(tiny_disk):
