@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from hardware.live import ProcessLoop
+from hardware.realtime import realtime_warnings
 from hardware.rig import load_rig
 from protocols.datafile import SessionFile, SessionWriter, check_free_space, session_bytes
 from protocols.engine import SessionEngine, State
@@ -187,6 +188,8 @@ def _run(me, rig, rig_path, subject_number, plan, path, attempts, breaks, say) -
     try:
         say(f"bringing up the rig ({rig.source}) ...")
         loop = ProcessLoop(rig_path, subject_number)
+        for w in realtime_warnings(loop.realtime):
+            say(f"warning: {w}")
         engine = SessionEngine(plan, loop, attempts=attempts, pace_breaks=breaks)
         extra = {"rig": rig.describe(), "realtime_tuning": loop.realtime}
         if loop.physiology is not None:

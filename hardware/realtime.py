@@ -67,4 +67,29 @@ def tune_process(*, fifo: bool = True, lock_memory: bool = True) -> dict:
                 applied["mlockall"] = f"not permitted ({os.strerror(ctypes.get_errno())})"
         except OSError as e:
             applied["mlockall"] = f"unavailable ({e})"
+    try:
+        applied["cpus"] = sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        pass
     return applied
+
+
+def realtime_warnings(applied: dict) -> list[str]:
+    """What the loop process did not get, as warnings for the terminal and the GUI (empty when
+    it got its real-time priority and locked memory, and has a core besides the others)."""
+    out = []
+    fifo = applied.get("sched_fifo_priority")
+    if not isinstance(fifo, int):
+        out.append(
+            f"the control loop runs without real-time priority (SCHED_FIFO: {fifo}); expect "
+            "late cycles when the computer is busy (run as root or grant CAP_SYS_NICE)"
+        )
+    if applied.get("mlockall") is not True:
+        out.append(
+            f"the control loop's memory is not locked (mlockall: {applied.get('mlockall')}); a "
+            "page fault can delay a cycle (grant CAP_IPC_LOCK or raise RLIMIT_MEMLOCK)"
+        )
+    cpus = applied.get("cpus")
+    if cpus is not None and len(cpus) < 2:
+        out.append(f"the control loop may use only CPU {cpus}: it shares it with everything else")
+    return out

@@ -92,3 +92,27 @@ def test_sigkill_of_the_host_leaves_zero_torque_at_the_drive(
     (r,) = SessionFile(path).records()
     assert r.status == "aborted" and "live loop process died" in r.abort_reason
     assert r.n_samples == sum(e.n for e in seen if isinstance(e, ev.SamplesAcquired)) >= 1500
+
+
+def test_the_fault_benchmark_measures_at_the_drive(tmp_path):
+    """One row of ``python -m benchmarks faults`` (EMCY: the drive faults, torque off at once)."""
+    from benchmarks.faults import FAULTS, run_fault
+
+    (fault,) = [f for f in FAULTS if f[0] == "EMCY"]
+    row = run_fault(*fault, tmp_path, stall_s=0.5)
+    assert row["status"] == "aborted" and "0x2310" in row["reason"]
+    assert row["torque_before_nm"] != 0.0 and row["drive_state_after"] == "FAULT"
+    assert 0 <= row["zero_torque_ms"] < 100 and row["lost_samples"] == 0
+    assert row["timeout_ms"] is None and row["goal_met"]
+
+
+def test_realtime_warnings_say_what_the_loop_did_not_get():
+    from hardware.realtime import realtime_warnings
+
+    good = {"sched_fifo_priority": 20, "mlockall": True, "cpus": [0, 1]}
+    assert realtime_warnings(good) == []
+    bad = {"sched_fifo_priority": "not permitted (Operation not permitted)", "mlockall": "x",
+           "cpus": [1]}  # fmt: skip
+    w = realtime_warnings(bad)
+    assert len(w) == 3 and "real-time priority" in w[0] and "not locked" in w[1]
+    assert "CPU [1]" in w[2]
