@@ -35,7 +35,7 @@ from hardware.can import (
     open_bus,
 )
 from hardware.glove.unit import SerialGloveUnit
-from hardware.loop import DEFAULT_BLOCK_S, SPIN_S, DeviceLoop
+from hardware.loop import DEFAULT_BLOCK_S, LOOP_CHANNELS, SPIN_S, DeviceLoop
 from hardware.rig import RigConfig, load_rig
 from protocols.engine import LoopControl, TrialFault
 from protocols.session import TrialSetup
@@ -268,7 +268,46 @@ class RigDevices:
 STATUS_PERIOD_S = 1.0
 
 
-def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: float) -> None:
+#: Samples the shared ring holds (s at 1 kHz): what the engine recovers of a killed loop process.
+RING_SAMPLES = 2048
+
+
+class SampleRing:
+    """The loop's newest samples in shared memory, written as each is complete, so that those a
+    killed loop process had not yet handed over (its block in progress, blocks still in its
+    queue's buffer) can still reach the file."""
+
+    def __init__(self, ctx) -> None:
+        n = len(LOOP_CHANNELS)
+        self.data = ctx.RawArray("d", RING_SAMPLES * n)
+        self.count = ctx.RawValue("q", 0)  # samples of this trial written
+
+    def sink(self):
+        ring = np.frombuffer(self.data, dtype=float).reshape(RING_SAMPLES, -1)
+        count = self.count
+        channels = LOOP_CHANNELS
+
+        def put(index: int, buf: dict, row: int) -> None:
+            r = ring[index % RING_SAMPLES]
+            for c, name in enumerate(channels):
+                r[c] = buf[name][row]
+            count.value = index + 1
+
+        return put
+
+    def since(self, first: int) -> dict | None:
+        """Samples ``first`` … newest as a block, if the ring still holds them all."""
+        last = self.count.value
+        if last <= first or last - first > RING_SAMPLES:
+            return None
+        ring = np.frombuffer(self.data, dtype=float).reshape(RING_SAMPLES, -1)
+        rows = ring[np.arange(first, last) % RING_SAMPLES]
+        return {name: rows[:, c].copy() for c, name in enumerate(LOOP_CHANNELS)}
+
+
+def _worker(
+    rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: float, ring=None
+) -> None:
     import gc
 
     from hardware.realtime import tune_process
@@ -283,6 +322,8 @@ def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: 
         return
     try:
         loop = devices.device_loop(estop=estop, block_s=block_s)
+        if ring is not None:
+            loop.sample_sink = ring.sink()
         status_every = max(1, round(STATUS_PERIOD_S / loop.block_s))
         out.put(
             (
@@ -366,6 +407,7 @@ class ProcessLoop:
     ):
         ctx = mp.get_context("spawn")
         self._estop = ctx.Event()
+        self._ring = SampleRing(ctx)
         self._conn, child = ctx.Pipe()
         self._q: mp.Queue = ctx.Queue()
         self._stats: dict = {}
@@ -375,7 +417,7 @@ class ProcessLoop:
         self._lock = threading.Lock()
         self._proc = ctx.Process(
             target=_worker,
-            args=(rig_path, subject_number, child, self._q, self._estop, block_s),
+            args=(rig_path, subject_number, child, self._q, self._estop, block_s, self._ring),
             name="steerlab-loop",
             daemon=True,
         )
@@ -413,6 +455,8 @@ class ProcessLoop:
     def run_trial(self, setup: TrialSetup, control: LoopControl) -> Iterator[dict]:
         self._estop.clear()
         self._stats = {}
+        self._ring.count.value = 0
+        delivered = 0
         with self._lock:
             self._conn.send(("trial", setup))
         done = threading.Event()
@@ -425,11 +469,16 @@ class ProcessLoop:
                     kind, payload = self._q.get(timeout=0.1)
                 except queue.Empty:
                     if not self._proc.is_alive():
+                        # What it took but never handed over is in the shared ring.
+                        rest = self._ring.since(delivered)
+                        if rest is not None:
+                            yield rest
                         raise TrialFault(
                             f"the live loop process died (exit code {self._proc.exitcode})"
                         ) from None
                     continue
                 if kind == "block":
+                    delivered += len(payload["time_s"])
                     yield payload
                 elif kind == "status":
                     self.status = payload

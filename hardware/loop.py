@@ -72,9 +72,12 @@ class DeviceLoop:
         clock: Callable[[], float] = time.perf_counter,
         safety: SafetyLimits | None = None,
         sample_extras: Callable[[], Mapping[str, float]] | None = None,
+        sample_sink: Callable[[int, dict, int], None] | None = None,
     ) -> None:
         self.drive, self.sensor, self.glove, self.display = drive, torque_sensor, glove, display
         self.sample_extras = sample_extras
+        # Called once per sample, as soon as it is complete: (sample index, block buffer, row).
+        self.sample_sink = sample_sink
         self.realtime = realtime
         self.block_s = block_s
         self.trial_hooks = list(trial_hooks)
@@ -227,6 +230,8 @@ class DeviceLoop:
                         buf["grip_force_right_N"][j] = g.right_n
                         buf["grip_force_N"][j] = g.left_n + g.right_n
                         filled = j + 1
+                        if self.sample_sink is not None:
+                            self.sample_sink(k + j, buf, j)
                         if self.display is not None and (k + j) % 20 == 0:
                             self.display.show_angle(r.angle_rad)
                         if k + j == next_change:

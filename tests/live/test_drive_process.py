@@ -9,6 +9,7 @@ import signal
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from hardware.live import ProcessLoop
@@ -54,6 +55,7 @@ def test_sigkill_of_the_host_leaves_zero_torque_at_the_drive(
 ):
     loop = ProcessLoop(str(host_rig), 2)
     path = tmp_path / "S02.h5"
+    syncs_before = lab.status()["enabled_syncs"]
     try:
         eng = SessionEngine(build_plan(short_protocol, 2), loop)
         eng.subscribe(SessionWriter(path))
@@ -92,6 +94,11 @@ def test_sigkill_of_the_host_leaves_zero_torque_at_the_drive(
     (r,) = SessionFile(path).records()
     assert r.status == "aborted" and "live loop process died" in r.abort_reason
     assert r.n_samples == sum(e.n for e in seen if isinstance(e, ev.SamplesAcquired)) >= 1500
+    # … all of them: those the killed process took but had not handed over come from the shared
+    # ring. The drive counts the control cycles it met (300 zeroing cycles before the trial).
+    cycles = st["enabled_syncs"] - syncs_before - 300
+    assert cycles - 1 <= r.n_samples <= cycles, (cycles, r.n_samples)
+    assert np.allclose(np.diff(r.time_s), 1e-3) and r.time_s[0] == 0.0
 
 
 def test_the_fault_benchmark_measures_at_the_drive(tmp_path):
