@@ -105,8 +105,8 @@ def _cmd_run(a: argparse.Namespace) -> int:
 def _cmd_stop(a: argparse.Namespace) -> int:
     from app.run import stop_running
 
-    pid = stop_running(a.out)
-    print(f"emergency stop sent to the session in {a.out} (process {pid})")
+    target = stop_running(a.out, subject=a.subject, rig=a.rig)
+    print(f"emergency stop sent to the session of {target.describe()} in {a.out}")
     return 0
 
 
@@ -198,6 +198,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("stop", help="emergency stop of the session running in --out")
     t.add_argument("--out", default="sessions")
+    t.add_argument("--subject", type=int, help="the session's subject number (needed when "
+                   "several sessions run in --out)")  # fmt: skip
+    t.add_argument("--rig", help="the session's rig file, as given to steerlab run")
     t.set_defaults(func=_cmd_stop)
 
     d = sub.add_parser("diagnose", help="find what the simulation gets wrong on measured data")

@@ -11,7 +11,13 @@ from pathlib import Path
 from hardware.sim.physiology import PopulationSpread, make_population
 from hardware.sim.rig import simulated_rig
 from hardware.sim.world import WorldConfig
-from protocols.datafile import DataFileError, SessionFile, SessionWriter
+from protocols.datafile import (
+    DataFileError,
+    SessionFile,
+    SessionWriter,
+    check_free_space,
+    session_bytes,
+)
 from protocols.engine import SessionEngine, State
 from protocols.events import TrialEnded
 from protocols.protocol import Protocol, load_protocol
@@ -132,6 +138,7 @@ def simulate_study(
     subjects = [subject_id(i) for i in range(1, n_subjects + 1)]
     check_output(out, subjects, resume=resume, overwrite=overwrite, protocol=protocol)
     out.mkdir(parents=True, exist_ok=True)
+    check_free_space(out, n_subjects * session_bytes(build_plan(protocol, 1)))
     if overwrite:
         for s in subjects:
             session_path(out, s).unlink(missing_ok=True)

@@ -35,7 +35,7 @@ from hardware.can import (
     open_bus,
 )
 from hardware.glove.unit import SerialGloveUnit
-from hardware.loop import DEFAULT_BLOCK_S, DeviceLoop
+from hardware.loop import DEFAULT_BLOCK_S, LOOP_CHANNELS, SPIN_S, DeviceLoop
 from hardware.rig import RigConfig, load_rig
 from protocols.engine import LoopControl, TrialFault
 from protocols.session import TrialSetup
@@ -167,7 +167,13 @@ class RigDevices:
             period = 1.0 / self.rig.loop_rate_hz
             t0 = time.perf_counter()
             for i in range(int(ZEROING_S * self.rig.loop_rate_hz)):
-                while time.perf_counter() < t0 + i * period:
+                # Sleep most of the wait, as the loop does: a busy wait under SCHED_FIFO would
+                # starve the process's other threads (the host heartbeat the drive watches).
+                due = t0 + i * period
+                wait = due - time.perf_counter()
+                if wait > SPIN_S + 1e-4:
+                    time.sleep(wait - SPIN_S)
+                while time.perf_counter() < due:
                     pass
                 self.drive.set_torque(0.0)
                 self.drive.sync()
@@ -182,13 +188,21 @@ class RigDevices:
         if d.heartbeat_lost:
             return "drive lost: no heartbeat"
         if not d.ok:
+            # The first active fault is the cause (an EMCY); later ones follow from it (the
+            # drive then leaves OPERATION ENABLED).
             faults = d.active_faults
-            return f"drive fault: {faults[-1]}" if faults else "drive not ready"
+            if not faults:
+                return "drive not ready"
+            more = f" (and {len(faults) - 1} more)" if len(faults) > 1 else ""
+            return f"drive fault: {faults[0]}{more}"
         if g.error is not None:
             return f"glove unit failed: {g.error}"
         age = g.age_s()
         if age is None or age > self.rig.safety.glove_timeout_s:
-            return f"glove stream stopped: no frame for {'ever' if age is None else f'{age:.2f} s'}"
+            crc = g.stats().crc_errors
+            damaged = f" ({crc} frames with a bad CRC so far)" if crc else ""
+            since = "ever" if age is None else f"{age:.2f} s"
+            return f"glove stream stopped: no valid frame for {since}{damaged}"
         return None
 
     def status(self) -> dict:
@@ -254,7 +268,46 @@ class RigDevices:
 STATUS_PERIOD_S = 1.0
 
 
-def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: float) -> None:
+#: Samples the shared ring holds (s at 1 kHz): what the engine recovers of a killed loop process.
+RING_SAMPLES = 2048
+
+
+class SampleRing:
+    """The loop's newest samples in shared memory, written as each is complete, so that those a
+    killed loop process had not yet handed over (its block in progress, blocks still in its
+    queue's buffer) can still reach the file."""
+
+    def __init__(self, ctx) -> None:
+        n = len(LOOP_CHANNELS)
+        self.data = ctx.RawArray("d", RING_SAMPLES * n)
+        self.count = ctx.RawValue("q", 0)  # samples of this trial written
+
+    def sink(self):
+        ring = np.frombuffer(self.data, dtype=float).reshape(RING_SAMPLES, -1)
+        count = self.count
+        channels = LOOP_CHANNELS
+
+        def put(index: int, buf: dict, row: int) -> None:
+            r = ring[index % RING_SAMPLES]
+            for c, name in enumerate(channels):
+                r[c] = buf[name][row]
+            count.value = index + 1
+
+        return put
+
+    def since(self, first: int) -> dict | None:
+        """Samples ``first`` … newest as a block, if the ring still holds them all."""
+        last = self.count.value
+        if last <= first or last - first > RING_SAMPLES:
+            return None
+        ring = np.frombuffer(self.data, dtype=float).reshape(RING_SAMPLES, -1)
+        rows = ring[np.arange(first, last) % RING_SAMPLES]
+        return {name: rows[:, c].copy() for c, name in enumerate(LOOP_CHANNELS)}
+
+
+def _worker(
+    rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: float, ring=None
+) -> None:
     import gc
 
     from hardware.realtime import tune_process
@@ -269,6 +322,8 @@ def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: 
         return
     try:
         loop = devices.device_loop(estop=estop, block_s=block_s)
+        if ring is not None:
+            loop.sample_sink = ring.sink()
         status_every = max(1, round(STATUS_PERIOD_S / loop.block_s))
         out.put(
             (
@@ -285,9 +340,11 @@ def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: 
             control = LoopControl()
             fault = None
             closing = False
+            # A writable perturbation, so that an injected fault ("nan") can reach it.
+            setup = replace(msg[1], perturbation_nm=np.array(msg[1].perturbation_nm))
             gc.disable()  # no collection pauses inside the loop; collect between trials
             try:
-                for i, block in enumerate(loop.run_trial(msg[1], control)):
+                for i, block in enumerate(loop.run_trial(setup, control)):
                     out.put(("block", block))
                     if i % status_every == 0:
                         out.put(("status", devices.status()))
@@ -299,6 +356,8 @@ def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: 
                             control.paused.set()
                         elif m[0] == "close":
                             control.abort_reason, closing = "the session was closed", True
+                        elif m[0] == "inject":
+                            out.put(("injected", (m[1], _inject(m[1], devices, setup))))
             except TrialFault as f:
                 fault = str(f)
             except Exception as e:
@@ -317,6 +376,24 @@ def _worker(rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: 
         devices.close()
 
 
+#: Faults :meth:`ProcessLoop.inject` can put into the loop process's running trial (tests and
+#: ``python -m benchmarks faults``): the host's CAN bus goes bus-off, the loop thread hangs for
+#: 0.2 s, the perturbation turns NaN.
+HOST_FAULTS = ("bus_off", "hang", "nan")
+
+
+def _inject(fault: str, devices: RigDevices, setup: TrialSetup) -> float:
+    """Inject ``fault`` now, on the loop's thread, between two blocks; its time.monotonic()."""
+    t = time.monotonic()
+    if fault == "bus_off":
+        devices.drive._bus.shutdown()
+    elif fault == "hang":
+        time.sleep(0.2)
+    elif fault == "nan":
+        setup.perturbation_nm[:] = np.nan
+    return t
+
+
 class ProcessLoop:
     """A real-time rig's control loop, run in its own process (see the module docstring)."""
 
@@ -330,19 +407,24 @@ class ProcessLoop:
     ):
         ctx = mp.get_context("spawn")
         self._estop = ctx.Event()
+        self._ring = SampleRing(ctx)
         self._conn, child = ctx.Pipe()
         self._q: mp.Queue = ctx.Queue()
         self._stats: dict = {}
         self.status: dict = {}
+        self.injected: dict[str, float] = {}
         self.physiology: dict | None = None
         self._lock = threading.Lock()
         self._proc = ctx.Process(
             target=_worker,
-            args=(rig_path, subject_number, child, self._q, self._estop, block_s),
+            args=(rig_path, subject_number, child, self._q, self._estop, block_s, self._ring),
             name="steerlab-loop",
             daemon=True,
         )
-        self._proc.start()
+        from hardware.realtime import single_threaded_math_for_children
+
+        with single_threaded_math_for_children():
+            self._proc.start()
         try:
             kind, payload = self._q.get(timeout=start_timeout_s)
         except queue.Empty:
@@ -358,32 +440,52 @@ class ProcessLoop:
     def emergency_stop(self) -> None:
         self._estop.set()
 
+    def inject(self, fault: str) -> None:
+        """Fault injection for tests and benchmarks (:data:`HOST_FAULTS`): done by the loop
+        process between two blocks of the running trial; the time it was done
+        (time.monotonic()) then appears in :attr:`injected`."""
+        if fault not in HOST_FAULTS:
+            raise ValueError(f"unknown fault {fault!r} (known: {', '.join(HOST_FAULTS)})")
+        with self._lock:
+            self._conn.send(("inject", fault))
+
     def trial_stats(self) -> dict:
         return dict(self._stats)
 
     def run_trial(self, setup: TrialSetup, control: LoopControl) -> Iterator[dict]:
         self._estop.clear()
         self._stats = {}
+        self._ring.count.value = 0
+        delivered = 0
         with self._lock:
             self._conn.send(("trial", setup))
         done = threading.Event()
         forwarder = threading.Thread(target=self._forward, args=(control, done), daemon=True)
         forwarder.start()
+        ended = False
         try:
             while True:
                 try:
                     kind, payload = self._q.get(timeout=0.1)
                 except queue.Empty:
                     if not self._proc.is_alive():
+                        # What it took but never handed over is in the shared ring.
+                        rest = self._ring.since(delivered)
+                        if rest is not None:
+                            yield rest
                         raise TrialFault(
                             f"the live loop process died (exit code {self._proc.exitcode})"
                         ) from None
                     continue
                 if kind == "block":
+                    delivered += len(payload["time_s"])
                     yield payload
                 elif kind == "status":
                     self.status = payload
+                elif kind == "injected":
+                    self.injected[payload[0]] = payload[1]
                 elif kind == "end":
+                    ended = True
                     self._stats = payload["stats"]
                     self.status = payload["status"]
                     if payload["fault"]:
@@ -392,6 +494,30 @@ class ProcessLoop:
         finally:
             done.set()
             forwarder.join(1.0)
+            if not ended and self._proc.is_alive():
+                # The engine let go of the trial (its writer failed, it was cut off, …): the
+                # loop must not go on applying the perturbation. Zero torque at its next cycle.
+                self._stop_trial()
+
+    def _stop_trial(self, timeout_s: float = 5.0) -> None:
+        self._estop.set()
+        try:
+            with self._lock:
+                self._conn.send(("abort", "the engine stopped the trial"))
+        except (OSError, BrokenPipeError):
+            return
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:  # its remaining blocks, then its end
+            try:
+                kind, payload = self._q.get(timeout=0.1)
+            except queue.Empty:
+                if not self._proc.is_alive():
+                    return
+                continue
+            if kind == "end":
+                self._stats = payload["stats"]
+                self.status = payload["status"]
+                return
 
     def _forward(self, control: LoopControl, done: threading.Event) -> None:
         """Pass pause and abort on to the loop process, even while the engine is not pulling."""

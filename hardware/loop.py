@@ -32,7 +32,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 import numpy as np
 
 from hardware.interfaces import Display, GloveUnit, TorqueSensor, WheelDrive
-from hardware.safety import SafetyLimits, loop_command, warm_up
+from hardware.safety import SafetyLimits, loop_command, nonfinite_input, warm_up
 from protocols.engine import LoopControl, TrialFault
 from protocols.session import TrialSetup
 
@@ -72,9 +72,12 @@ class DeviceLoop:
         clock: Callable[[], float] = time.perf_counter,
         safety: SafetyLimits | None = None,
         sample_extras: Callable[[], Mapping[str, float]] | None = None,
+        sample_sink: Callable[[int, dict, int], None] | None = None,
     ) -> None:
         self.drive, self.sensor, self.glove, self.display = drive, torque_sensor, glove, display
         self.sample_extras = sample_extras
+        # Called once per sample, as soon as it is complete: (sample index, block buffer, row).
+        self.sample_sink = sample_sink
         self.realtime = realtime
         self.block_s = block_s
         self.trial_hooks = list(trial_hooks)
@@ -139,6 +142,7 @@ class DeviceLoop:
         errors: list[float] = []
         self._stats = {}
         self._stall = None
+        self._samples = 0  # samples complete (handed out or about to be)
         fade = 1.0  # perturbation gain while a pause fades it out
         fade_step = 1.0 / max(1, int(round(PAUSE_FADE_S * fs)))
         watchdog_stop = threading.Event()
@@ -158,70 +162,96 @@ class DeviceLoop:
             while k < n_total:
                 m = min(blk, n_total - k)
                 buf = {c: np.empty(m) for c in LOOP_CHANNELS}
-                for j in range(m):
-                    if self.realtime:
-                        due = t0 + (k + j) * period
-                        now = self.clock()
-                        # Sleep most of the wait (other threads and processes run), spin the
-                        # last SPIN_S: sleep wakes up to ~0.1 ms late, the spin does not.
-                        if due - now > SPIN_S + 1e-4:
-                            time.sleep(due - now - SPIN_S)
-                        while self.clock() < due:
-                            pass
-                        err = self.clock() - due
-                        errors.append(err)
-                        if err > stall_s:
-                            raise TrialFault(f"control loop stalled: cycle {err * 1e3:.1f} ms late")
-                    self._last_cycle = self.clock()
-                    if self.estop is not None and self.estop.is_set():
-                        raise TrialFault("emergency stop")
-                    if self._stall is not None:
-                        raise TrialFault(self._stall)
-                    if self.health is not None:
-                        problem = self.health()
-                        if problem is not None:
-                            raise TrialFault(problem)
-                    r = self.drive.read()
-                    td = self.sensor.read()
-                    g = self.glove.latest()
-                    if g is None:
-                        raise TrialFault("no grip-force reading from the glove unit")
-                    if extras_of is not None:
-                        for name, v in extras_of().items():
-                            if name not in buf:
-                                buf[name] = np.empty(m)
-                            buf[name][j] = v
-                    tp = tp_all[k + j]
-                    if fade < 1.0 or (self.pause_fades_out and control.paused.is_set()):
-                        fade = max(0.0, fade - fade_step)
-                        tp *= fade
-                    cmd = loop_command(tp, r.angle_rad, r.velocity_rad_s, cmd, k_sw, b_sw, limits)
-                    self.drive.set_torque(cmd)
-                    self.drive.sync()
-                    buf["time_s"][j] = (k + j) / fs
-                    buf["perturbation_torque_Nm"][j] = tp
-                    buf["driver_torque_Nm"][j] = td
-                    buf["wheel_angle_rad"][j] = r.angle_rad
-                    buf["wheel_velocity_rad_s"][j] = r.velocity_rad_s
-                    buf["motor_command_Nm"][j] = cmd
-                    buf["motor_torque_Nm"][j] = r.torque_actual_nm
-                    buf["grip_force_left_N"][j] = g.left_n
-                    buf["grip_force_right_N"][j] = g.right_n
-                    buf["grip_force_N"][j] = g.left_n + g.right_n
-                    if self.display is not None and (k + j) % 20 == 0:
-                        self.display.show_angle(r.angle_rad)
-                    if k + j == next_change:
-                        _, cond, bd = changes.pop(0)
-                        self.display.show_condition(cond, bd)
-                        next_change = changes[0][0] if changes else -1
-                    if fade == 0.0:
-                        # Faded out for a pause: end here; the trial is run again later.
-                        k += j + 1
-                        yield {c: v[: j + 1] for c, v in buf.items()}
-                        raise TrialFault(
-                            "paused mid-trial by the experimenter; run the trial again"
-                        )
+                filled = 0  # samples of this block complete
+                try:
+                    for j in range(m):
+                        if self.realtime:
+                            due = t0 + (k + j) * period
+                            now = self.clock()
+                            # Sleep most of the wait (other threads and processes run), spin the
+                            # last SPIN_S: sleep wakes up to ~0.1 ms late, the spin does not.
+                            if due - now > SPIN_S + 1e-4:
+                                time.sleep(due - now - SPIN_S)
+                            while self.clock() < due:
+                                pass
+                            err = self.clock() - due
+                            errors.append(err)
+                            if err > stall_s:
+                                raise TrialFault(
+                                    f"control loop stalled: cycle {err * 1e3:.1f} ms late"
+                                )
+                        self._last_cycle = self.clock()
+                        if self.estop is not None and self.estop.is_set():
+                            raise TrialFault("emergency stop")
+                        if self._stall is not None:
+                            raise TrialFault(self._stall)
+                        if self.health is not None:
+                            problem = self.health()
+                            if problem is not None:
+                                raise TrialFault(problem)
+                        r = self.drive.read()
+                        td = self.sensor.read()
+                        g = self.glove.latest()
+                        if g is None:
+                            raise TrialFault("no grip-force reading from the glove unit")
+                        if extras_of is not None:
+                            for name, v in extras_of().items():
+                                if name not in buf:
+                                    buf[name] = np.empty(m)
+                                buf[name][j] = v
+                        tp = tp_all[k + j]
+                        if fade < 1.0 or (self.pause_fades_out and control.paused.is_set()):
+                            fade = max(0.0, fade - fade_step)
+                            tp *= fade
+                        ang, vel = r.angle_rad, r.velocity_rad_s
+                        cmd = loop_command(tp, ang, vel, cmd, k_sw, b_sw, limits)
+                        if cmd == 0.0:  # loop_command's answer to a non-finite input, or a zero
+                            bad = nonfinite_input(
+                                perturbation_torque_Nm=tp,
+                                wheel_angle_rad=r.angle_rad,
+                                wheel_velocity_rad_s=r.velocity_rad_s,
+                                wheel_k=k_sw,
+                                wheel_b=b_sw,
+                            )
+                            if bad is not None:
+                                self.drive.set_torque(0.0)
+                                self.drive.sync()  # the zero is applied at once
+                                raise TrialFault(f"non-finite motor command input: {bad}")
+                        self.drive.set_torque(cmd)
+                        self.drive.sync()
+                        buf["time_s"][j] = (k + j) / fs
+                        buf["perturbation_torque_Nm"][j] = tp
+                        buf["driver_torque_Nm"][j] = td
+                        buf["wheel_angle_rad"][j] = r.angle_rad
+                        buf["wheel_velocity_rad_s"][j] = r.velocity_rad_s
+                        buf["motor_command_Nm"][j] = cmd
+                        buf["motor_torque_Nm"][j] = r.torque_actual_nm
+                        buf["grip_force_left_N"][j] = g.left_n
+                        buf["grip_force_right_N"][j] = g.right_n
+                        buf["grip_force_N"][j] = g.left_n + g.right_n
+                        filled = j + 1
+                        if self.sample_sink is not None:
+                            self.sample_sink(k + j, buf, j)
+                        if self.display is not None and (k + j) % 20 == 0:
+                            self.display.show_angle(r.angle_rad)
+                        if k + j == next_change:
+                            _, cond, bd = changes.pop(0)
+                            self.display.show_condition(cond, bd)
+                            next_change = changes[0][0] if changes else -1
+                        if fade == 0.0:
+                            # Faded out for a pause: end here (the samples so far are yielded
+                            # below); the trial is run again later.
+                            raise TrialFault(
+                                "paused mid-trial by the experimenter; run the trial again"
+                            )
+                except TrialFault:
+                    # The samples of this block taken before the fault go to the file too.
+                    if filled:
+                        self._samples = k + filled
+                        yield {c: v[:filled] for c, v in buf.items()}
+                    raise
                 k += m
+                self._samples = k
                 t_yield = self.clock()
                 # Only a loop whose world waits with it (simulated) may be suspended; a real
                 # rig's loop is consumed continuously (ProcessLoop), so there the watchdog stays.
@@ -247,10 +277,11 @@ class DeviceLoop:
                 self.drive.disable()
             if watchdog is not None:
                 watchdog.join(1.0)
+            self._stats = {"samples": self._samples}
             if errors:
                 e = np.abs(np.asarray(errors)) * 1e3
                 late = int(np.count_nonzero(np.asarray(errors) > LATE_S))
-                self._stats = {
+                self._stats |= {
                     "period_error_p50_ms": float(np.percentile(e, 50)),
                     "period_error_p99_ms": float(np.percentile(e, 99)),
                     "period_error_max_ms": float(e.max()),

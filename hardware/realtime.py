@@ -14,14 +14,37 @@ What a lab does for hard guarantees, and what Steerlab does:
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import os
 import sys
 
+#: For a process that will run under SCHED_FIFO: BLAS and OpenMP worker threads busy-wait for
+#: work, and at real-time priority two such processes (two sessions on one machine) starve each
+#: other for good (seen: two loop processes stuck in scipy's expm at start-up). The loop's linear
+#: algebra is 4×4; one thread is all it needs. Set before numpy is imported (in the child).
+SINGLE_THREADED_MATH = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
 SWITCH_INTERVAL_S = 2e-4
 FIFO_PRIORITY = 20
 MCL_CURRENT, MCL_FUTURE = 1, 2
+
+
+@contextlib.contextmanager
+def single_threaded_math_for_children():
+    """Within the block, child processes started (spawn, subprocess) get
+    :data:`SINGLE_THREADED_MATH` in their environment."""
+    saved = {k: os.environ.get(k) for k in SINGLE_THREADED_MATH}
+    os.environ.update(SINGLE_THREADED_MATH)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def tune_process(*, fifo: bool = True, lock_memory: bool = True) -> dict:
@@ -44,4 +67,29 @@ def tune_process(*, fifo: bool = True, lock_memory: bool = True) -> dict:
                 applied["mlockall"] = f"not permitted ({os.strerror(ctypes.get_errno())})"
         except OSError as e:
             applied["mlockall"] = f"unavailable ({e})"
+    try:
+        applied["cpus"] = sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        pass
     return applied
+
+
+def realtime_warnings(applied: dict) -> list[str]:
+    """What the loop process did not get, as warnings for the terminal and the GUI (empty when
+    it got its real-time priority and locked memory, and has a core besides the others)."""
+    out = []
+    fifo = applied.get("sched_fifo_priority")
+    if not isinstance(fifo, int):
+        out.append(
+            f"the control loop runs without real-time priority (SCHED_FIFO: {fifo}); expect "
+            "late cycles when the computer is busy (run as root or grant CAP_SYS_NICE)"
+        )
+    if applied.get("mlockall") is not True:
+        out.append(
+            f"the control loop's memory is not locked (mlockall: {applied.get('mlockall')}); a "
+            "page fault can delay a cycle (grant CAP_IPC_LOCK or raise RLIMIT_MEMLOCK)"
+        )
+    cpus = applied.get("cpus")
+    if cpus is not None and len(cpus) < 2:
+        out.append(f"the control loop may use only CPU {cpus}: it shares it with everything else")
+    return out

@@ -7,6 +7,7 @@ Every problem is a :class:`hardware.can.ConfigError` naming the file, the sectio
 
 from __future__ import annotations
 
+import math
 import tomllib
 from dataclasses import asdict, dataclass
 from importlib import resources
@@ -133,6 +134,12 @@ def load_rig(path: str | Path | None = None) -> RigConfig:
                 )
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise ConfigError(src, "simulation", key, f"must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise ConfigError(src, "simulation", key, f"must be finite, got {value!r}")
+            if key == "seed" and (not isinstance(value, int) or value < 0):
+                raise ConfigError(
+                    src, "simulation", key, f"must be a whole number ≥ 0, got {value!r}"
+                )
         sim = SimulationConfig(
             seed=int(t.get("seed", 0)),
             column_torque_offset_nm=float(t.get("column_torque_offset_nm", 0.05)),

@@ -47,8 +47,9 @@ class SafetyLimits:
         if not 0 <= self.fade_zone_deg < self.soft_angle_limit_deg:
             out.append(("fade_zone_deg", "must be ≥ 0 and below soft_angle_limit_deg, "
                         f"got {self.fade_zone_deg}"))  # fmt: skip
-        if self.brake_damping_nms_per_rad < 0:
-            out.append(("brake_damping_nms_per_rad", "must be ≥ 0"))
+        b = self.brake_damping_nms_per_rad
+        if not (isinstance(b, int | float) and math.isfinite(b) and b >= 0):
+            out.append(("brake_damping_nms_per_rad", f"must be a finite number ≥ 0, got {b!r}"))
         return out
 
     def kernel_vector(self, fs_hz: float) -> np.ndarray:
@@ -77,6 +78,29 @@ def perturbation_gain(angle: float, limit: float, zone: float) -> float:
 
 
 @njit(cache=True)
+def inputs_finite(
+    tp: float, angle: float, velocity: float, previous: float, k_sw: float, b_sw: float
+) -> bool:
+    return (
+        math.isfinite(tp)
+        and math.isfinite(angle)
+        and math.isfinite(velocity)
+        and math.isfinite(previous)
+        and math.isfinite(k_sw)
+        and math.isfinite(b_sw)
+    )
+
+
+def nonfinite_input(**values: float) -> str | None:
+    """``"name = value"`` of the first non-finite value, or None: the reason a caller records when
+    :func:`loop_command` returned its zero for a non-finite input."""
+    for name, v in values.items():
+        if not math.isfinite(v):
+            return f"{name} = {float(v)!r}"
+    return None
+
+
+@njit(cache=True)
 def loop_command(
     tp: float,
     angle: float,
@@ -86,7 +110,13 @@ def loop_command(
     b_sw: float,
     s: np.ndarray,
 ) -> float:
-    """Motor command (N·m) for one cycle; ``s`` is ``SafetyLimits.kernel_vector(fs)``."""
+    """Motor command (N·m) for one cycle; ``s`` is ``SafetyLimits.kernel_vector(fs)``.
+
+    No non-finite value reaches the motor: any NaN or infinite input (a broken sensor value, a
+    protocol's inf) gives exactly 0.0, zero torque at once (no slew limit: cutting the torque
+    is the safe act). The caller treats a 0.0 with :func:`inputs_finite` false as a fault."""
+    if not inputs_finite(tp, angle, velocity, previous, k_sw, b_sw):
+        return 0.0
     max_t, max_step, limit, zone, b_brake = s[0], s[1], s[2], s[3], s[4]
     g = perturbation_gain(angle, limit, zone)
     cmd = g * tp - b_sw * velocity - k_sw * angle
@@ -101,6 +131,8 @@ def loop_command(
         cmd = previous + max_step
     elif step < -max_step:
         cmd = previous - max_step
+    if not math.isfinite(cmd):  # non-finite limits: no torque rather than an unknown one
+        return 0.0
     return cmd
 
 

@@ -10,7 +10,9 @@ Nothing is ever overwritten: a redo is a new group; the old one is only marked s
 from __future__ import annotations
 
 import json
+import logging
 import os
+import shutil
 import time
 from collections.abc import Iterable
 from contextlib import contextmanager
@@ -21,14 +23,18 @@ import h5py
 import numpy as np
 
 from protocols import events as ev
+from protocols.engine import TrialFault
 from protocols.perturbation import PerturbationDesign
 from protocols.records import (
     CORE_CHANNELS,
+    STATUS_ABORTED,
     STATUS_COMPLETE,
     STATUS_INCOMPLETE,
     STATUS_SUPERSEDED,
     TrialRecord,
 )
+
+log = logging.getLogger(__name__)
 
 FORMAT = "steerlab-session"
 FORMAT_VERSION = 1
@@ -88,8 +94,56 @@ def _set_attrs(obj, attrs: dict) -> None:
             obj.attrs[k] = v
 
 
+#: Free space the writer keeps in hand: it stops writing samples (a fault that ends the trial)
+#: before the disk is this full, so that the last samples, the trial's end and the file's
+#: metadata still fit and the file stays readable. HDF5 itself, once a write fails for lack of
+#: space, leaves a file no reader can open (and the writing process may crash).
+RESERVE_BYTES = 4 * 1024 * 1024
+
+
+class WriterFailure(TrialFault):
+    """The session writer cannot go on (disk full, I/O error, file removed): a fault that ends
+    the trial. The message names the file and the cause."""
+
+
+def session_bytes(plan, channels: int = 11, chunk_samples: int = 8192, dtype_bytes: int = 4) -> int:
+    """Bytes the session file of ``plan`` takes at most (whole chunks: HDF5 allocates them)."""
+    total = 256 * 1024  # file metadata, protocol text, attributes
+    per_sample = 8 + (channels - 1) * dtype_bytes  # time_s f8, the rest dtype
+    for spec in plan.trials:
+        n = plan.setup(spec, 1).n_samples
+        chunks = -(-n // chunk_samples)
+        total += chunks * chunk_samples * per_sample + 64 * 1024
+    return total
+
+
+def check_free_space(directory: str | Path, needed_bytes: int, *, margin: float = 1.5) -> int:
+    """Refuse (:class:`DataFileError`) when ``directory`` has less free space than
+    ``needed_bytes`` × ``margin`` + :data:`RESERVE_BYTES`; returns the free bytes."""
+    free = shutil.disk_usage(directory).free
+    want = int(needed_bytes * margin) + RESERVE_BYTES
+    if free < want:
+        raise DataFileError(
+            f"{directory}: not enough free space for the session: {_mb(free)} free, the session "
+            f"needs {_mb(needed_bytes)} ({_mb(want)} with margin and reserve)"
+        )
+    return free
+
+
+def _mb(n: int) -> str:
+    return f"{n / 1e6:.1f} MB"
+
+
 class SessionWriter:
-    """Writes the engine's events into one session file."""
+    """Writes the engine's events into one session file.
+
+    Any failure while a trial is recorded (disk full, I/O error, the file removed or replaced)
+    raises :class:`WriterFailure` from the engine's event, which ends the trial as aborted (the
+    loop's finalizer leaves zero torque). The writer then keeps what it can: samples already
+    written stay, the trial is marked aborted, the file is closed; later events are ignored
+    (:attr:`failure` says why). Before the disk is full (:data:`RESERVE_BYTES` left) it stops
+    on its own, so that the file stays readable with every sample it was given.
+    """
 
     def __init__(
         self,
@@ -115,6 +169,9 @@ class SessionWriter:
         self._buffered = 0
         self._written = 0
         self._last_flush = clock()
+        self.reserve_bytes = RESERVE_BYTES
+        self.failure: str | None = None
+        self._identity: tuple[int, int] | None = None  # (st_dev, st_ino) of the open file
 
     # -- file handling --------------------------------------------------------------------------
     def _open(self) -> h5py.File:
@@ -128,6 +185,8 @@ class SessionWriter:
                 # "open for writing". Recover into a fresh copy; the original stays as a backup.
                 self.recovered_from = recover_crashed_file(self.path)
                 self.f = h5py.File(self.path, "a", libver="latest")
+            st = os.stat(self.path)
+            self._identity = (st.st_dev, st.st_ino)
         return self.f
 
     def _reopen_plain(self) -> h5py.File:
@@ -144,6 +203,58 @@ class SessionWriter:
 
     # -- events -----------------------------------------------------------------------------------
     def __call__(self, event: object) -> None:
+        if self.failure is not None:
+            return  # already failed (and reported); the file is closed
+        in_trial = self._key is not None
+        try:
+            self._dispatch(event)
+        except WriterFailure as e:
+            raise self._fail(str(e), space_left=True) from None
+        except DataFileError:
+            raise
+        except Exception as e:  # h5py: OSError, RuntimeError, …
+            if not in_trial and not isinstance(event, ev.SamplesAcquired):
+                raise
+            raise self._fail(f"{self.path}: {type(e).__name__}: {e}", space_left=False) from e
+
+    def _fail(self, what: str, *, space_left: bool) -> WriterFailure:
+        """Keep what can be kept, close the file, and return the fault to raise."""
+        self.failure = what
+        f, key = self.f, self._key
+        try:
+            if f is not None and key is not None and self._still_ours():
+                if space_left:
+                    self._write_out()  # what is buffered: the reserve is for it
+                g = self._reopen_plain()["trials"][key]
+                _set_attrs(
+                    g,
+                    {
+                        "status": STATUS_ABORTED,
+                        "abort_reason": f"session writer failed: {what}",
+                        "n_samples": self._written,
+                        "ended_utc": _now(),
+                    },
+                )
+                self.f.flush()
+        except Exception as e:  # the file takes no more; what was flushed stays
+            log.error("%s: could not record the writer's failure: %r", self.path, e)
+        finally:
+            try:
+                self.close()
+            except Exception as e:
+                log.error("%s: could not close after the writer's failure: %r", self.path, e)
+                self.f = None
+        self._key = None
+        return WriterFailure(f"session writer failed: {what}")
+
+    def _still_ours(self) -> bool:
+        try:
+            st = os.stat(self.path)
+        except OSError:
+            return False
+        return (st.st_dev, st.st_ino) == self._identity
+
+    def _dispatch(self, event: object) -> None:
         match event:
             case ev.SessionStarted():
                 self._session_started(event)
@@ -234,6 +345,10 @@ class SessionWriter:
         self.f.swmr_mode = True
 
     def _samples(self, e: ev.SamplesAcquired) -> None:
+        # Both checks every block (a stat and a statvfs, microseconds): the trial ends within
+        # one block of the file going away or the disk filling up.
+        if not self._still_ours():
+            raise WriterFailure(f"{self.path}: the session file was removed or replaced")
         if e.key != self._key:
             raise DataFileError(f"{self.path}: samples for {e.key!r} while writing {self._key!r}")
         if not self._buf:
@@ -244,6 +359,7 @@ class SessionWriter:
         for k, v in e.channels.items():
             self._buf[k].append(np.asarray(v))
         self._buffered += e.n
+        self._check_space()  # on failure, this block too goes into the reserve
         now = self.clock()
         if self._buffered >= self.chunk_samples or now - self._last_flush >= self.flush_interval_s:
             self._write_out()
@@ -269,6 +385,14 @@ class SessionWriter:
             d.resize((m0 + len(self._marks),))
             d[m0:] = np.array(self._marks, dtype=MARK_DTYPE)
             self._marks = []
+
+    def _check_space(self) -> None:
+        free = shutil.disk_usage(self.path.parent).free
+        if free < self.reserve_bytes:
+            raise WriterFailure(
+                f"{self.path}: disk full: {_mb(free)} free, below the writer's reserve of "
+                f"{_mb(self.reserve_bytes)}"
+            )
 
     def _trial_ended(self, e: ev.TrialEnded) -> None:
         if e.key != self._key:

@@ -47,6 +47,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -59,9 +60,11 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from hardware.interfaces import DriveReading
 
-from .config import DriveConfig
+from .config import ABORT_CONNECTION_OPTIONS, DriveConfig
 from .frames import (
+    ABORT_CONNECTION_OPTION,
     COMM_CYCLE_PERIOD,
+    CONSUMER_HEARTBEAT,
     CONTROLWORD,
     MAX_TORQUE,
     MODE_CST,
@@ -213,6 +216,71 @@ class _HeartbeatWatch:
         return True
 
 
+class _HostHeartbeat:
+    """The host's heartbeat producer (CiA 301): NMT state OPERATIONAL on 0x700 + host node id
+    every period, on a thread of its own, so the drive's consumer heartbeat (0x1016) sees the
+    host alive. It stops when the host process dies or its bus fails; the drive then reacts
+    per 0x6007 by itself."""
+
+    def __init__(self, send: Callable[[can.Message, str], bool], node_id: int, period_s: float):
+        self._send = send
+        self._msg = can.Message(
+            arbitration_id=heartbeat_cob_id(node_id),
+            is_extended_id=False,
+            data=bytes([NmtState.OPERATIONAL]),
+        )
+        self._period = period_s
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.sent = 0
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        if self.running:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="host heartbeat", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        t = self._thread
+        if t is not None and t is not threading.current_thread():
+            t.join(1.0)
+
+    def beat(self) -> None:
+        """Send one heartbeat now (besides the periodic ones)."""
+        if self._send(self._msg, "host heartbeat"):
+            self.sent += 1
+
+    def _run(self) -> None:
+        _above_the_loop()
+        due = time.monotonic()
+        while True:
+            self.beat()
+            due += self._period
+            now = time.monotonic()
+            if due < now:  # late (the machine was busy): do not send a burst
+                due = now + self._period
+            if self._stop.wait(due - now):
+                return
+
+
+def _above_the_loop() -> None:
+    """Under SCHED_FIFO, run this thread one priority above the rest of the process: a thread
+    of the same FIFO priority is not time-sliced, so a control loop that spins would hold the
+    heartbeat off its core (and the drive would cut the torque). Nothing to do otherwise."""
+    try:
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            prio = os.sched_getparam(0).sched_priority
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(min(prio + 1, 99)))
+    except (AttributeError, OSError):
+        pass
+
+
 def _pdo_writes(
     comm: int, mapping: int, cob_id: int, layout: PdoLayout, what: str
 ) -> list[SdoWrite]:
@@ -284,6 +352,24 @@ def startup_writes(config: DriveConfig) -> list[SdoWrite]:
         ),
         SdoWrite(MAX_TORQUE, 0, config.max_torque_permille, 2, what="max torque, 0.1 % of rated"),
         SdoWrite(TARGET_TORQUE, 0, 0, 2, signed=True, what="target torque zero"),
+        # The drive's own guard: if the host's heartbeat stops (host killed, bus-off, cable cut)
+        # the drive itself cuts the torque, whatever the host does.
+        SdoWrite(
+            ABORT_CONNECTION_OPTION,
+            0,
+            config.abort_connection_option,
+            2,
+            signed=True,
+            what="abort connection option: "
+            + ABORT_CONNECTION_OPTIONS.get(config.abort_connection_option, "?"),
+        ),
+        SdoWrite(
+            CONSUMER_HEARTBEAT,
+            1,
+            (config.host_node_id << 16) | config.host_heartbeat_timeout_ms,
+            4,
+            what=f"consumer heartbeat time of host node {config.host_node_id}, ms",
+        ),
         SdoWrite(PRODUCER_HEARTBEAT, 0, config.heartbeat_ms, 2, what="producer heartbeat time, ms"),
     ]
     return writes
@@ -378,6 +464,10 @@ class CiA402Drive:
 
         # heartbeat consumer (watched from the heartbeat's configuration in enable() on)
         self._hb = _HeartbeatWatch(config.heartbeat_timeout_ms / 1000.0)
+        # heartbeat producer of the host (from enable() on), watched by the drive (0x1016)
+        self._host_hb = _HostHeartbeat(
+            self._try_send, config.host_node_id, config.host_heartbeat_ms / 1000.0
+        )
 
         self._faults: collections.deque[DriveFault] = collections.deque(maxlen=_HISTORY)
         self._active: dict[tuple[str, object], DriveFault] = {}
@@ -419,6 +509,7 @@ class CiA402Drive:
             self._sensor_hb.lost_reported = False
         step = "start"
         try:
+            self._host_hb.start()
             step = "NMT enter pre-operational"
             self._nmt(NmtCommand.PRE_OPERATIONAL)
             for w in self._writes:
@@ -426,6 +517,10 @@ class CiA402Drive:
                 self._sdo_write(w)
                 if w.index == PRODUCER_HEARTBEAT:
                     self._hb.since = time.monotonic()
+                elif w.index == CONSUMER_HEARTBEAT:
+                    # The drive watches the host from its next heartbeat on (CiA 301): send one
+                    # now, so the watch starts before the torque can.
+                    self._host_hb.beat()
             step = "check mode of operation"
             self._check_mode()
             step = "check motor rated torque"
@@ -668,6 +763,7 @@ class CiA402Drive:
         self._hb.since = None
         if self._sensor_hb is not None:
             self._sensor_hb.since = None
+        self._host_hb.stop()
         self._reader.stop()
 
     def __enter__(self) -> CiA402Drive:

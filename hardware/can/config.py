@@ -29,6 +29,10 @@ from .frames import (
 TorqueSensorSource = Literal["pdo", "node", "none"]
 VelocityUnit = Literal["counts_per_s", "rpm"]
 
+#: Steerlab's own interface: a bus shared between processes of this machine
+#: (:mod:`hardware.can.udp_bus`), for simulated devices in a process of their own.
+UDP_LOOPBACK = "udp_loopback"
+
 CAN_BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
 
 
@@ -44,6 +48,12 @@ def _frame_bits(data_bytes: int) -> int:
 _CYCLE_BITS = sum(_frame_bits(n) for n in (4, 0, 8, 8))
 _SENSOR_FRAME_BITS = _frame_bits(8)
 MAX_BUS_LOAD = 0.8
+
+#: The longest the drive may keep torque on after losing its host (``host_heartbeat_timeout_ms``).
+MAX_HOST_TIMEOUT_MS = 100
+#: CiA 402 0x6007 abort connection option codes the rig file may choose (0, "no action", would
+#: leave the torque on the wheel).
+ABORT_CONNECTION_OPTIONS = {1: "fault", 2: "disable voltage", 3: "quick stop"}
 
 _PYTHON = "<python>"
 
@@ -139,6 +149,11 @@ class DriveConfig:
     safety: SafetyConfig
     heartbeat_ms: int = 100
     heartbeat_timeout_ms: int = 250
+    # The drive's own guard against a lost host (CiA 301 0x1016, CiA 402 0x6007):
+    host_node_id: int = 127
+    host_heartbeat_ms: int = 20
+    host_heartbeat_timeout_ms: int = 80
+    abort_connection_option: int = 2
     loop_rate_hz: float = 1000.0
     tpdo_timeout_ms: float = 0.8
     max_missed_tpdo: int = 20
@@ -295,7 +310,7 @@ def _validate(cfg: DriveConfig) -> None:
     src = cfg.source
     c = _Check(cfg, src, "drive")
     node_id = c.int_("node_id", 1, 127)
-    c.choice("interface", tuple(sorted(can.interfaces.VALID_INTERFACES)))
+    c.choice("interface", tuple(sorted(can.interfaces.VALID_INTERFACES | {UDP_LOOPBACK})))
     if isinstance(cfg.channel, bool) or not isinstance(cfg.channel, str | int) or cfg.channel == "":
         raise c.fail("channel", f"expected a non-empty string or an integer, {c.got('channel')}")
     c.choice("bitrate", CAN_BITRATES)
@@ -311,6 +326,7 @@ def _validate(cfg: DriveConfig) -> None:
             f"must be longer than heartbeat_ms ({hb} ms), got {hb_timeout}; "
             "2 to 3 times heartbeat_ms is usual",
         )
+    _validate_host_guard(c, cfg, node_id)
     rate = c.float_("loop_rate_hz")
     period_ms = 1000.0 / rate
     if round(period_ms * 1000) < 1:
@@ -362,6 +378,31 @@ def _validate(cfg: DriveConfig) -> None:
         t.int_("subindex", 0, 0xFE)
     else:
         _validate_sensor_node(t, cfg.torque_sensor, node_id)
+
+
+def _validate_host_guard(c: _Check, cfg: DriveConfig, drive_id: int) -> None:
+    """The drive's watch on the host: its consumer heartbeat time (0x1016) must be short enough
+    to protect the person holding the wheel and long enough for the host's heartbeat period."""
+    host = c.int_("host_node_id", 1, 127)
+    if host == drive_id:
+        raise c.fail("host_node_id", f"must differ from the drive's node_id {drive_id}")
+    sensor = cfg.torque_sensor
+    if isinstance(sensor, TorqueSensorConfig) and sensor.source == "node":
+        if host == sensor.node_id:
+            raise c.fail(
+                "host_node_id",
+                f"must differ from the torque sensor's node_id {sensor.node_id} "
+                "([drive.torque_sensor])",
+            )
+    period = c.int_("host_heartbeat_ms", 1, 0xFFFF)
+    timeout = c.int_("host_heartbeat_timeout_ms", 1, MAX_HOST_TIMEOUT_MS)
+    if timeout <= period:
+        raise c.fail(
+            "host_heartbeat_timeout_ms",
+            f"must be longer than host_heartbeat_ms ({period} ms), got {timeout}; "
+            "3 to 4 times host_heartbeat_ms is usual",
+        )
+    c.choice("abort_connection_option", tuple(ABORT_CONNECTION_OPTIONS))
 
 
 def _validate_sensor_node(t: _Check, sensor: TorqueSensorConfig, drive_id: int) -> None:

@@ -98,7 +98,10 @@ MODE_CST = 10  # cyclic synchronous torque
 
 ERROR_REGISTER = 0x1001
 COMM_CYCLE_PERIOD = 0x1006
+CONSUMER_HEARTBEAT = 0x1016  # sub 1..n: (producer node id << 16) | consumer time ms
 PRODUCER_HEARTBEAT = 0x1017
+ABORT_CONNECTION_OPTION = 0x6007  # CiA 402: reaction to a lost connection (heartbeat, bus-off)
+EMCY_HEARTBEAT_ERROR = 0x8130  # CiA 301: life guard error or heartbeat error
 
 
 class Controlword(IntEnum):

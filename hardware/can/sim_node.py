@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import struct
 import threading
+import time
 from typing import Protocol
 
 import can
@@ -46,8 +47,11 @@ from canopen.sdo import SdoAbortedError
 
 from .config import DriveConfig
 from .frames import (
+    ABORT_CONNECTION_OPTION,
     COMM_CYCLE_PERIOD,
+    CONSUMER_HEARTBEAT,
     CONTROLWORD,
+    EMCY_HEARTBEAT_ERROR,
     ERROR_CODE,
     ERROR_REGISTER,
     MAX_TORQUE,
@@ -177,6 +181,16 @@ def build_object_dictionary(
     add(_var("Producer heartbeat time", PRODUCER_HEARTBEAT, 0, UNSIGNED16, "rw", 0))
     add(
         _record(
+            "Consumer heartbeat time",
+            CONSUMER_HEARTBEAT,
+            [
+                _var("Highest sub-index supported", CONSUMER_HEARTBEAT, 0, UNSIGNED8, "const", 1),
+                _var("Consumer heartbeat time 1", CONSUMER_HEARTBEAT, 1, UNSIGNED32, "rw", 0),
+            ],
+        )
+    )
+    add(
+        _record(
             "Identity object",
             0x1018,
             [
@@ -248,6 +262,8 @@ def build_object_dictionary(
     add(_var("Controlword", CONTROLWORD, 0, UNSIGNED16, "rw", 0, mappable=True))
     add(_var("Statusword", STATUSWORD, 0, UNSIGNED16, "ro", 0, mappable=True))
     add(_var("Quick stop option code", QUICK_STOP_OPTION, 0, INTEGER16, "rw", 6))
+    # 0 (no action) out of the box, so that a driver that does not configure the guard is caught
+    add(_var("Abort connection option code", ABORT_CONNECTION_OPTION, 0, INTEGER16, "rw", 0))
     add(_var("Modes of operation", MODES_OF_OPERATION, 0, INTEGER8, "rw", 0, mappable=True))
     add(
         _var(
@@ -316,16 +332,32 @@ class SimulatedDrive:
         self._rpdo: tuple[int, PdoLayout] | None = None
         self._tpdos: list[tuple[int, int, PdoLayout]] = []
         self._pos = self._vel = self._torque_actual = self._column = 0
-        self.applied_torque_nm = 0.0
+        self._applied = 0.0
+        #: time.monotonic() since which the applied torque is zero (None while it is not);
+        #: CLOCK_MONOTONIC is system-wide, so another process can compare it with its own.
+        self.zero_torque_since: float | None = time.monotonic()
+        # consumer heartbeat (0x1016:01): producer node, timeout s, last heartbeat (None:
+        # not monitoring; CiA 301 starts monitoring at the first heartbeat after configuration)
+        self._consumer: tuple[int, float] | None = None
+        self._consumer_last: float | None = None  # bus timestamp (time.time()) of the last one
+        self._bus_time: float | None = None  # bus timestamp of the newest frame since the tick
+        self.host_heartbeats_lost = 0
+        self.connection_lost_at: float | None = None
 
         self.refuse_enable = False
         self.mute_pdo = False
         self._silent = False
         self.sync_count = 0
+        self.enabled_syncs = 0  # SYNCs met in OPERATION ENABLED: the host's control cycles
         self.ignored_frames = 0
         self.errors: list[BaseException] = []
         self._reader = BusReader(
-            bus, self._on_frame, self._on_reader_failure, name=f"SimulatedDrive node {n} rx"
+            bus,
+            self._on_frame,
+            self._on_reader_failure,
+            name=f"SimulatedDrive node {n} rx",
+            on_tick=self._on_tick,
+            poll_s=0.002,
         )
         self._started = False
         if autostart:
@@ -377,6 +409,25 @@ class SimulatedDrive:
         with self._lock:
             self._enter_fault(code, error_register | 0x01, vendor_data)
             self._fault_resettable = resettable
+            self._power_stage()
+
+    @property
+    def watching_host(self) -> bool:
+        """The consumer heartbeat (0x1016) is configured and monitoring its producer."""
+        return self._consumer is not None and self._consumer_last is not None
+
+    @property
+    def applied_torque_nm(self) -> float:
+        """The torque the power stage applies now (N·m, wheel axis)."""
+        return self._applied
+
+    def _apply(self, torque_nm: float) -> None:
+        if torque_nm == 0.0:
+            if self._applied != 0.0 or self.zero_torque_since is None:
+                self.zero_torque_since = time.monotonic()
+        else:
+            self.zero_torque_since = None
+        self._applied = torque_nm
 
     @property
     def statusword(self) -> int:
@@ -405,6 +456,7 @@ class SimulatedDrive:
         with self._lock:
             if self._silent:
                 return
+            self._bus_time = msg.timestamp
             try:
                 if cid == SYNC_COB_ID and len(msg.data) <= 1:
                     self._on_sync()
@@ -415,6 +467,8 @@ class SimulatedDrive:
                         self._network.notify(cid, msg.data, msg.timestamp)
                     else:
                         self.ignored_frames += 1
+                elif self._consumer is not None and cid == 0x700 + self._consumer[0]:
+                    self._consumer_last = msg.timestamp
                 else:
                     self._refresh_layouts()
                     if self._rpdo is not None and cid == self._rpdo[0]:
@@ -422,6 +476,46 @@ class SimulatedDrive:
             except (struct.error, SdoAbortedError):
                 # A real drive ignores frames it cannot parse; so do we (counted for tests).
                 self.ignored_frames += 1
+            self._power_stage()
+
+    def _power_stage(self) -> None:
+        # Out of OPERATION ENABLED the power stage is off at once, SYNC or not.
+        if self._applied != 0.0 and self.state is not State402.OPERATION_ENABLED:
+            self._apply(0.0)
+
+    def _on_tick(self, now: float) -> None:
+        """The drive's own watch on its host, run at least every 2 ms even on a silent bus.
+
+        Times are the frames' bus timestamps (wall clock at sending): a real drive sees each
+        frame when it is on the wire, whereas this thread may run late on a busy computer and
+        find frames queued. Until the queue is drained, the newest frame taken is "now"."""
+        with self._lock:
+            last = self._consumer_last
+            if self._consumer is None or last is None:
+                return
+            bus_now = self._bus_time if self._bus_time is not None else time.time()
+            self._bus_time = None  # the next idle tick (no frame meanwhile) uses the clock
+            if bus_now - last <= self._consumer[1]:
+                return
+            # CiA 301 heartbeat consumer: the producer is lost; monitoring stops until its
+            # next heartbeat. CiA 402: react per the abort connection option code 0x6007.
+            self._consumer_last = None
+            self.host_heartbeats_lost += 1
+            self.connection_lost_at = now
+            self._connection_lost()
+            self._power_stage()
+
+    def _connection_lost(self) -> None:
+        option = self.od_value(ABORT_CONNECTION_OPTION)
+        active = self.state in (State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE)
+        if option == 1 and active:
+            self._enter_fault(EMCY_HEARTBEAT_ERROR, 0x11)  # FAULT, power stage off
+            return
+        if active and option == 2:
+            self.state = State402.SWITCH_ON_DISABLED  # disable voltage
+        elif self.state is State402.OPERATION_ENABLED and option == 3:
+            self.state = State402.QUICK_STOP_ACTIVE  # in torque mode: zero torque at once
+        self._send_emcy(EMCY_HEARTBEAT_ERROR, 0x11)
 
     def _on_reader_failure(self, exc: BaseException) -> None:
         self.errors.append(exc)
@@ -440,6 +534,7 @@ class SimulatedDrive:
                 for index in [i for i in self._node.data_store if 0x1000 <= i <= 0x1FFF]:
                     del self._node.data_store[index]
             self._layouts_dirty = True
+            self._consumer = self._consumer_last = None
             nmt.stop_heartbeat()
             self._power_on(keep_drive_state=command == NmtCommand.RESET_COMMUNICATION)
             return
@@ -488,7 +583,9 @@ class SimulatedDrive:
                 self._write_object(obj.index, obj.subindex, value)
             self._rpdo_pending = None
         torque = self._motor_torque_nm()
-        self.applied_torque_nm = torque
+        self._apply(torque)
+        if self.state is State402.OPERATION_ENABLED:
+            self.enabled_syncs += 1
         try:
             self.plant.step(torque)
             self._latch_plant()
@@ -520,6 +617,8 @@ class SimulatedDrive:
         return self.scaling.permille_to_torque(permille)
 
     def _send(self, cob_id: int, data: bytes) -> None:
+        if self._silent:
+            return
         self._network.send_message(cob_id, data)
 
     def _send_emcy(self, code: int, register: int, vendor_data: bytes = b"") -> None:
@@ -635,6 +734,10 @@ class SimulatedDrive:
             self._layouts_dirty = True
         if index in (CONTROLWORD, TARGET_TORQUE):
             self._write_object(index, subindex, value)
+        if index == CONSUMER_HEARTBEAT and subindex == 1:
+            node, ms = (value >> 16) & 0x7F, value & 0xFFFF
+            self._consumer = (node, ms / 1000.0) if node and ms else None
+            self._consumer_last = None
 
     def _check_pdo_write(self, index: int, subindex: int, value: int) -> None:
         """The CiA 301 rules drives enforce, so a driver that maps in the wrong order fails

@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 import can
 
-from .config import DriveConfig
+from .config import UDP_LOOPBACK, DriveConfig
 from .frames import (
     emcy_cob_id,
     heartbeat_cob_id,
@@ -62,6 +62,11 @@ def open_bus(config: DriveConfig, *, filtered: bool = True, **kwargs: object) ->
     if filtered:
         options["can_filters"] = driver_filters(config)
     options.update(kwargs)
+    if config.interface == UDP_LOOPBACK:
+        from .udp_bus import UdpLoopbackBus
+
+        options.pop("bitrate")
+        return UdpLoopbackBus(str(config.channel), **options)
     return can.Bus(interface=config.interface, channel=config.channel, **options)
 
 

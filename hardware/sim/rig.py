@@ -22,7 +22,7 @@ from hardware.safety import SafetyLimits
 from hardware.sim.physiology import ConditionBehaviour, PopulationSpread, SubjectPhysiology
 from hardware.sim.schedule import DEFAULT_TAU_S, BehaviourSchedule, schedule_for
 from hardware.sim.world import TRUTH_CHANNELS, World, WorldConfig
-from protocols.engine import LoopControl
+from protocols.engine import LoopControl, TrialFault
 from protocols.protocol import VirtualWheel
 from protocols.session import TrialSetup
 
@@ -228,6 +228,11 @@ class BatchLoop:
                     rig.display.show_condition(cond, bd)
                 rig.display.show_angle(float(out["wheel_angle_rad"][-1]))
                 yield block
+                if rig.world.nonfinite_commands:
+                    raise TrialFault(
+                        f"non-finite motor command input in {rig.world.nonfinite_commands} "
+                        "cycles (perturbation, wheel or sensor value): zero torque applied"
+                    )
                 if control.stop_requested:
                     return
         finally:

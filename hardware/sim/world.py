@@ -31,7 +31,7 @@ from numba import njit
 from scipy.linalg import expm
 from scipy.signal import lfilter
 
-from hardware.safety import SafetyLimits, loop_command
+from hardware.safety import SafetyLimits, inputs_finite, loop_command
 from hardware.sim.mechanisms import Mechanisms
 from hardware.sim.physiology import ConditionBehaviour
 from hardware.sim.schedule import ARM_COLUMNS, BehaviourSchedule
@@ -45,7 +45,8 @@ P_DPAR_HALF = 16  # dt/2 for scheduled trials (see World._scheduled_deltas), els
 N_PARAMS = 17
 # Indices into the kernel's state vector (beyond the 4 mechanical states).
 S_TM, S_RA, S_RAD, S_RPOS, S_SPOS, S_CMD = 4, 5, 6, 7, 8, 9
-N_STATE = 10
+S_NONFINITE = 10  # cycles whose command had a non-finite input (zero torque applied instead)
+N_STATE = 11
 
 
 @dataclass(frozen=True)
@@ -185,8 +186,13 @@ def _advance(
         tm_reported = st[S_TM]
         if internal:
             cmd = loop_command(tp[j], ang, vel, st[S_CMD], p[P_KSW], p[P_BSW], safety)
+            if cmd == 0.0 and not inputs_finite(tp[j], ang, vel, st[S_CMD], p[P_KSW], p[P_BSW]):
+                st[S_NONFINITE] += 1
         else:
             cmd = cmd_ext[j]
+            if not np.isfinite(cmd):  # no non-finite value reaches the motor
+                cmd = 0.0
+                st[S_NONFINITE] += 1
         st[S_CMD] = cmd
         st[S_TM] += p[P_ACT_ALPHA] * (cmd - st[S_TM])
         th, om, thh, omh = x[0], x[1], x[2], x[3]
@@ -535,6 +541,11 @@ class World:
     def scheduled(self) -> bool:
         """Whether this trial is time-varying (a stand-in noise source has no schedule)."""
         return getattr(self.noise, "schedule", None) is not None
+
+    @property
+    def nonfinite_commands(self) -> int:
+        """Cycles of this trial whose motor command had a non-finite input (zero applied)."""
+        return int(self.st[S_NONFINITE])
 
     @property
     def samples_done(self) -> int:

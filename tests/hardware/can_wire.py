@@ -15,6 +15,9 @@ from hardware.can import DriveConfig, SafetyConfig
 U8, U16, U32 = "2f", "2b", "23"  # expedited download of 1, 2, 4 bytes (CiA 301)
 
 
+HOST_HEARTBEAT = 0x77F  # node 127, the host's heartbeat the drive consumes (0x1016)
+
+
 def drain(bus: can.BusABC, timeout: float = 0.02, max_s: float = math.inf) -> list[tuple[int, str]]:
     """Frames until the bus is quiet for ``timeout`` (or ``max_s`` passed: heartbeats)."""
     frames = []
@@ -66,6 +69,9 @@ def node5_config(channel: str, **changes) -> DriveConfig:
         safety=SafetyConfig(max_torque_nm=8.0, max_slew_nm_per_s=100.0, soft_angle_limit_deg=360.0),
         heartbeat_ms=50,
         heartbeat_timeout_ms=150,
+        # the host's heartbeat (0x77F) is rarer than drain()'s 20-ms quiet gap
+        host_heartbeat_ms=60,
+        host_heartbeat_timeout_ms=100,
         loop_rate_hz=20.0,
         tpdo_timeout_ms=45.0,
     )

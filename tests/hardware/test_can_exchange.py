@@ -14,7 +14,17 @@ import can
 import pytest
 
 from hardware.can import CiA402Drive, DriveConfig, SimulatedDrive, State402
-from tests.hardware.can_wire import U8, U16, U32, drain, f, node5_config, sdo_read, sdo_write
+from tests.hardware.can_wire import (
+    HOST_HEARTBEAT,
+    U8,
+    U16,
+    U32,
+    drain,
+    f,
+    node5_config,
+    sdo_read,
+    sdo_write,
+)
 
 NODE = 5
 
@@ -95,6 +105,9 @@ EXPECTED_STARTUP = [
     # max torque: 8 N·m at the wheel / gear 2 / 10 N·m rated = 400 ‰ = 0x0190
     *sdo_write("72 60", "00", (U16, "90 01 00 00")),
     *sdo_write("71 60", "00", (U16, "00 00 00 00")),  # target torque 0
+    *sdo_write("07 60", "00", (U16, "02 00 00 00")),  # abort connection option 2: disable voltage
+    # consumer heartbeat 1: host node 127 (0x7F), 100 ms (0x64) → 0x007F0064
+    *sdo_write("16 10", "01", (U32, "64 00 7f 00")),
     *sdo_write("17 10", "00", (U16, "32 00 00 00")),  # heartbeat every 50 ms
     *sdo_read("61 60", "00", "4f 61 60 00 0a 00 00 00"),  # mode display: 10 (1 byte)
     *sdo_read("76 60", "00", "43 76 60 00 10 27 00 00"),  # rated torque 10000 mN·m (4 bytes)
@@ -116,7 +129,9 @@ def test_startup_exchange(rig):
     drive.enable()
     frames = drain(monitor)
     heartbeats = [data for cob, data in frames if cob == 0x705]
-    assert [fr for fr in frames if fr[0] != 0x705] == EXPECTED_STARTUP
+    assert [fr for fr in frames if fr[0] not in (0x705, HOST_HEARTBEAT)] == EXPECTED_STARTUP
+    # the host's heartbeat (NMT state OPERATIONAL), for the drive's consumer heartbeat (0x1016)
+    assert {data for cob, data in frames if cob == HOST_HEARTBEAT} == {"05"}
     # heartbeat starts when 0x1017 is written (pre-operational 0x7F), then reports 0x05
     assert heartbeats[0] == "7f" and heartbeats[-1] == "05"
     assert sim.state is State402.OPERATION_ENABLED
@@ -130,7 +145,7 @@ def test_one_control_cycle_exchange(rig):
     drive.set_torque(3.0)
     drive.sync()
     reading = drive.read()
-    frames = [fr for fr in drain(monitor) if fr[0] != 0x705]
+    frames = [fr for fr in drain(monitor) if fr[0] not in (0x705, HOST_HEARTBEAT)]
     assert frames == [
         # +3 N·m at the wheel, sign −1, gear 2, 10 N·m rated: −150 ‰ = 0xFF6A
         f(0x205, "0f 00 6a ff"),
@@ -156,7 +171,7 @@ def test_disable_exchange(rig):
     drive.sync()
     drain(monitor)
     drive.disable()
-    frames = [fr for fr in drain(monitor) if fr[0] not in (0x705, 0x185, 0x285)]
+    frames = [fr for fr in drain(monitor) if fr[0] not in (0x705, 0x185, 0x285, HOST_HEARTBEAT)]
     assert frames == [
         f(0x205, "0f 00 00 00"),  # zero torque, still enabled …
         f(0x080, ""),  # … applied at once

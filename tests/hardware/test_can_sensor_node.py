@@ -39,7 +39,17 @@ from hardware.can import (
 )
 from hardware.interfaces import TorqueSensor
 from tests.hardware import can_wire
-from tests.hardware.can_wire import U8, U16, U32, f, node5_config, sdo_read, sdo_write, wait_for
+from tests.hardware.can_wire import (
+    HOST_HEARTBEAT,
+    U8,
+    U16,
+    U32,
+    f,
+    node5_config,
+    sdo_read,
+    sdo_write,
+    wait_for,
+)
 from tests.helpers import assert_rig_error, edit, write_rig
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -233,6 +243,8 @@ EXPECTED_STARTUP = [
     *sdo_write("06 10", "00", (U32, "50 c3 00 00")),  # communication cycle 50000 µs
     *sdo_write("72 60", "00", (U16, "90 01 00 00")),  # max torque 400 ‰
     *sdo_write("71 60", "00", (U16, "00 00 00 00")),  # target torque 0
+    *sdo_write("07 60", "00", (U16, "02 00 00 00")),  # abort connection option 2
+    *sdo_write("16 10", "01", (U32, "64 00 7f 00")),  # consumer heartbeat: node 127, 100 ms
     *sdo_write("17 10", "00", (U16, "32 00 00 00")),  # heartbeat every 50 ms
     *sdo_read("61 60", "00", "4f 61 60 00 0a 00 00 00"),
     *sdo_read("76 60", "00", "43 76 60 00 10 27 00 00"),
@@ -253,7 +265,7 @@ def test_startup_exchange_starts_the_sensor_node(make_rig):
     rig = make_rig()
     assert rig.sensor.nmt_state == NmtState.PRE_OPERATIONAL
     rig.drive.enable()
-    frames = [fr for fr in drain(rig.monitor) if fr[0] != 0x705]
+    frames = [fr for fr in drain(rig.monitor) if fr[0] not in (0x705, HOST_HEARTBEAT)]
     assert frames == EXPECTED_STARTUP
     assert rig.sensor.nmt_state == NmtState.OPERATIONAL
     assert rig.drive.ok and rig.drive.enabled
@@ -266,7 +278,7 @@ def test_one_control_cycle_exchange(make_rig):
     drain(rig.monitor)
     drive.set_torque(3.0)
     drive.sync()
-    frames = [fr for fr in drain(rig.monitor) if fr[0] != 0x705]
+    frames = [fr for fr in drain(rig.monitor) if fr[0] not in (0x705, HOST_HEARTBEAT)]
     assert frames[:2] == [
         f(0x205, "0f 00 6a ff"),  # +3 N·m at the wheel: −150 ‰ (sign −1, gear 2, 10 N·m)
         f(0x080, ""),  # SYNC

@@ -53,8 +53,13 @@ def short_protocol_file(tmp_path):
 def rig_config():
     # The test process is not real-time tuned and shares the CPU with other tests: allow late
     # cycles here, so that each fault test sees its own fault (the stall test sets its own).
+    # The drive's own watch on the host gets the longest timeout a rig file may ask for.
     rig = load_rig()
-    return replace(rig, safety=replace(rig.safety, loop_stall_s=0.5, glove_timeout_s=1.0))
+    return replace(
+        rig,
+        safety=replace(rig.safety, loop_stall_s=0.5, glove_timeout_s=1.0),
+        drive=replace(rig.drive, host_heartbeat_timeout_ms=100),
+    )
 
 
 @pytest.fixture

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from protocols import events as ev
 from protocols.datafile import SessionFile, SessionWriter
 from protocols.engine import SessionEngine, State
 from protocols.session import build_plan
+from tests.hardware.can_wire import wait_for
 
 
 def _session(devices, protocol, tmp_path, loop: DeviceLoop | None = None, inject=None, at_s=1.5):
@@ -65,6 +67,7 @@ FAULTS = {
     "drive heartbeat lost": (lambda d, loop: d.node.stop_heartbeat(), r"drive lost: no heartbeat"),
     "drive EMCY fault": (lambda d, loop: d.node.inject_fault(0x2310), r"drive fault: .*0x2310"),
     "CAN send failure": (lambda d, loop: d._buses[-1].shutdown(), r"drive fault: .*(not sent|bus)"),
+    "drive link silent": (lambda d, loop: d.node.go_silent(), r"drive (lost|fault)"),
     "glove pty closed": (
         lambda d, loop: d.glove_sim.hang_up(),
         r"glove (unit failed|stream stopped)",
@@ -84,7 +87,7 @@ def test_each_fault_aborts_the_trial_keeps_samples_and_stops_the_motor(
     t_inject = []
 
     def do():
-        t_inject.append(time.perf_counter())
+        t_inject.append(time.monotonic())
         inject(devices, loop)
 
     state, recs, seen = _session(devices, short_protocol, tmp_path, loop=loop, inject=do)
@@ -95,12 +98,42 @@ def test_each_fault_aborts_the_trial_keeps_samples_and_stops_the_motor(
     # Every sample the loop produced is in the file, up to the fault.
     emitted = sum(e.n for e in seen if isinstance(e, ev.SamplesAcquired))
     assert r.n_samples == emitted >= 1500
+    assert loop.trial_stats()["samples"] == r.n_samples  # none lost, the last block's too
     assert r.attrs["marks"][-1]["kind"] == "abort"
-    # The motor was left at zero torque and disabled.
+    # The motor was left at zero torque and disabled, at the drive itself: where the host's
+    # frames no longer reach it (bus-off, a cut link), by its own watch on the host (0x1016).
     assert not devices.drive.enabled
-    if fault != "CAN send failure":  # the node never hears from a dead bus
+    assert wait_for(lambda: devices.node.applied_torque_nm == 0.0, timeout=2.0)
+    assert devices.node.statusword & 0x6F != 0x27  # not OPERATION ENABLED
+    if fault in ("CAN send failure", "drive link silent"):
+        assert devices.node.host_heartbeats_lost == 1
+        assert devices.node.zero_torque_since - t_inject[0] < 0.1 + 0.5
+    else:
         assert devices.node.target_torque_permille == 0
-        assert devices.node.statusword & 0x6F != 0x27  # not OPERATION ENABLED
+
+
+def test_nan_command_mid_trial_aborts_with_zero_torque(devices, short_protocol, tmp_path):
+    loop = devices.device_loop()
+    run, live = loop.run_trial, {}
+
+    def writable(setup, control):  # the trial's perturbation, where the test can reach it
+        live["tp"] = setup.perturbation_nm.copy()
+        return run(replace(setup, perturbation_nm=live["tp"]), control)
+
+    loop.run_trial = writable
+
+    def inject():
+        live["tp"][:] = np.nan  # from the next cycle on
+
+    state, recs, seen = _session(devices, short_protocol, tmp_path, loop=loop, inject=inject)
+    (r,) = recs
+    assert r.status == "aborted"
+    assert "non-finite motor command input: perturbation_torque_Nm = nan" in r.abort_reason
+    emitted = sum(e.n for e in seen if isinstance(e, ev.SamplesAcquired))
+    assert r.n_samples == emitted == loop.trial_stats()["samples"] >= 1500
+    assert np.all(np.isfinite(r.extra["motor_command_Nm"]))
+    assert wait_for(lambda: devices.node.applied_torque_nm == 0.0, timeout=2.0)
+    assert devices.node.target_torque_permille == 0 and not devices.drive.enabled
 
 
 class SlowDisplay:
@@ -147,7 +180,9 @@ def test_corrupted_serial_bytes_are_counted_not_fatal(devices, short_protocol, t
         threading.Thread(target=spaced, daemon=True).start()
 
     state, recs, _ = _session(devices, short_protocol, tmp_path, inject=corrupt)
-    assert state is State.DONE and all(r.status == "complete" for r in recs)
+    assert state is State.DONE and all(r.status == "complete" for r in recs), [
+        r.abort_reason for r in recs
+    ]
     st = devices.glove.stats()
     assert st.crc_errors >= 3 and st.out_of_range == 2 and st.resyncs >= 1
     # Every damaged frame was rejected: 3 bad CRCs + 2 flipped bytes (wherever the flip lands:

@@ -29,6 +29,7 @@ def lenient_rig(tmp_path):
     # load the CPU, so a late cycle must not abort these trials.
     text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
     p = tmp_path / "rig.toml"
+    text = text.replace("host_heartbeat_timeout_ms = 80 ", "host_heartbeat_timeout_ms = 100 ")
     p.write_text(text.replace("loop_stall_s = 0.02 ", "loop_stall_s = 0.5 "))
     assert "loop_stall_s = 0.5" in p.read_text()
     return p
@@ -171,7 +172,7 @@ def test_steerlab_run_and_stop(tmp_path, short_protocol_file, lenient_rig):
     p = _steerlab(
         "run", "--subject", 1, "--out", out, "--protocol", short_protocol_file, "--rig", lenient_rig
     )
-    pidfile = out / "steerlab-run.pid"
+    pidfile = out / "steerlab-run-S01.pid"
     deadline = time.monotonic() + 60
     # Stop it from "another terminal" once the first trial is under way.
     assert wait_for_samples(out / "S01.h5", 1500, deadline) and pidfile.exists()

@@ -10,7 +10,7 @@ import pytest
 
 from hardware.can.config import ConfigError
 from hardware.rig import load_rig
-from hardware.safety import SafetyLimits, loop_command, perturbation_gain
+from hardware.safety import SafetyLimits, inputs_finite, loop_command, perturbation_gain
 from hardware.sim.physiology import NOMINAL
 from hardware.sim.world import World, WorldConfig
 from tests.helpers import ROOT
@@ -104,3 +104,92 @@ def test_the_shipped_rig_file_loads():
     rig = load_rig()
     assert rig.simulated and rig.glove.simulated and rig.loop_rate_hz == 1000
     assert rig.safety.max_torque_nm == 8.0 and rig.safety.soft_angle_limit_deg == 90.0
+
+
+# -- no non-finite value reaches the motor -------------------------------------------------------
+
+
+@pytest.mark.parametrize("where", range(6))
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_a_non_finite_input_gives_exactly_zero_torque(where, bad):
+    args = [1.0, 0.1, 0.2, 0.3, 4.2, 2.0]  # tp, angle, velocity, previous, k, b
+    assert loop_command(*args, S) != 0.0
+    args[where] = bad
+    assert loop_command(*args, S) == 0.0  # not the slew-limited previous 0.3: cut at once
+    assert not inputs_finite(*args)
+
+
+def test_a_non_finite_intermediate_gives_zero_torque():
+    # finite inputs whose virtual wheel overflows to inf − inf = NaN
+    assert inputs_finite(0.0, 1e308, -1e308, 0.0, 4.2, 2.0)
+    assert loop_command(0.0, 1e308, -1e308, 0.0, 4.2, 2.0, S) == 0.0
+
+
+def test_the_world_kernel_applies_zero_for_a_non_finite_command():
+    w = World(WorldConfig(), safety=LIM)
+    w.begin_trial(replace(NOMINAL["RT"], remnant_sd_nm=0.0), 0.5, seed=1)
+    tp = np.sin(np.arange(2000) / 100.0)
+    tp[1000] = math.nan
+    out = w.run(tp)
+    assert out["motor_command_Nm"][1000] == 0.0 and out["motor_command_Nm"][999] != 0.0
+    assert w.nonfinite_commands == 1
+    assert all(np.all(np.isfinite(v)) for v in out.values())
+    w.step(math.inf)  # the live path's external command as well
+    assert w.nonfinite_commands == 2 and math.isfinite(w.read()["motor_torque_Nm"])
+
+
+def test_a_non_finite_perturbation_aborts_a_batch_trial(short_protocol, tmp_path):
+    from hardware.sim.physiology import make_population
+    from hardware.sim.rig import simulated_rig
+    from protocols.datafile import SessionFile, SessionWriter
+    from protocols.engine import SessionEngine
+    from protocols.session import build_plan
+
+    rig = simulated_rig(make_population(2, seed=1)[1], WorldConfig(fs_hz=1000.0))
+    loop = rig.batch_loop()
+    run = loop.run_trial
+
+    def poisoned(setup, control):  # the protocol's perturbation turns NaN at 2 s
+        tp = setup.perturbation_nm.copy()
+        tp[2000:] = math.nan
+        return run(replace(setup, perturbation_nm=tp), control)
+
+    loop.run_trial = poisoned
+    plan = build_plan(short_protocol, 2)
+    eng = SessionEngine(replace(plan, trials=plan.trials[:1]), loop)
+    eng.subscribe(SessionWriter(tmp_path / "S02.h5"))
+    eng.run()
+    (r,) = SessionFile(tmp_path / "S02.h5").records()
+    assert r.status == "aborted" and "non-finite" in r.abort_reason
+    cmd = r.extra["motor_command_Nm"]
+    assert np.all(cmd[2000:] == 0.0) and np.all(np.isfinite(cmd))
+    assert r.n_samples >= 2000 and np.any(cmd[:2000] != 0.0)
+
+
+def _numeric_fields(text: str) -> list[tuple[int, str, str]]:
+    """(line number, table, key) of every numeric field of a rig file's text."""
+    import re
+
+    out, table = [], None
+    for i, line in enumerate(text.splitlines()):
+        if m := re.match(r"\[([^\]]+)\]", line):
+            table = m.group(1)
+        elif m := re.match(r"(\w+) = [-+0-9._xX]+\s*(#.*)?$", line):
+            out.append((i, table, m.group(1)))
+    return out
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf", "-inf"])
+def test_rig_files_reject_non_finite_numbers_naming_file_and_field(tmp_path, bad):
+    base = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
+    fields = _numeric_fields(base)
+    assert len(fields) > 30  # every [drive], [safety], glove calibration and [simulation] number
+    for i, table, key in fields:
+        lines = base.splitlines()
+        lines[i] = f"{key} = {bad}"
+        p = tmp_path / f"{table}.{key}.toml"
+        p.write_text("\n".join(lines))
+        with pytest.raises(ConfigError) as e:
+            load_rig(p)
+        msg = str(e.value)
+        assert str(p) in msg and key in msg, (table, key, msg)

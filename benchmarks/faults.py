@@ -1,0 +1,264 @@
+"""Each fault injected into a running trial; the torque observed at the simulated drive.
+
+The simulated drive and glove unit run in a process of their own (``hardware.sim.lab``, over
+the ``udp_loopback`` CAN bus and a pty), the control loop in its own (``ProcessLoop``, as
+``steerlab run``), the engine and the HDF5 writer in this one. So a killed host is a real host
+kill, and ``zero_torque_ms`` is read at the drive: from the injection (time.monotonic(), the
+same clock in every process) until the drive's applied torque is zero.
+
+Per fault, a row ``{"name", "zero_torque_ms", "lost_samples", "status", "reason",
+"timeout_ms"}`` (``timeout_ms``: the configured detection time the fault waits for, or null),
+plus ``goal_met``. Goal (issue 14): zero_torque_ms ≤ 100, or ≤ timeout_ms + 100 where there is
+one; 0 lost samples; status aborted with a reason naming the fault.
+
+``lost_samples``: samples the loop took (its ``samples`` statistic) that are not in the file;
+for the killed host, the drive's control cycles in OPERATION ENABLED minus the 300 zeroing
+cycles minus the file's samples (±1: the finalizer's zero-torque SYNC is one more cycle).
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import os
+import re
+import shutil
+import signal
+import subprocess
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+from benchmarks.machine import machine
+from hardware.live import ZEROING_S, ProcessLoop
+from hardware.rig import load_rig
+from hardware.sim.lab import LabProcess, host_rig_text
+from protocols import events as ev
+from protocols.datafile import SessionFile, SessionWriter
+from protocols.engine import SessionEngine
+from protocols.protocol import parse_protocol
+from protocols.session import build_plan
+
+ROOT = Path(__file__).resolve().parents[1]
+SIMULATED_RIG = ROOT / "hardware" / "rigs" / "simulated.toml"
+
+PROTOCOL = """
+name = "faults"
+loop_rate_hz = 1000.0
+[trial]
+periods = 1
+run_in_s = 1.0
+fade_in_s = 0.5
+fade_out_s = 0.5
+familiarization_trials = 0
+repetitions = 1
+break_between_trials_s = 0.0
+break_between_conditions_s = 0.0
+[perturbation]
+period_s = 5.0
+n_bands = 10
+first_bin = 3
+f_max_hz = 20.0
+seed = 1
+[[conditions]]
+name = "BT12"
+boundary_deg = 12.0
+"""
+INJECT_AT = 2000  # samples: after the fade-in, with torque on the wheel
+
+# name, where it is injected, what, reason pattern, detection timeout (from the rig) or None
+FAULTS = [
+    ("heartbeat lost", "lab", "stop_heartbeat", r"drive lost: no heartbeat", "heartbeat"),
+    ("drive silent", "lab", "go_silent", r"drive (lost|fault)", "host_heartbeat"),
+    ("EMCY", "lab", "emcy", r"drive fault: .*0x2310", None),
+    ("CAN bus-off", "loop", "bus_off", r"drive fault: .*(not sent|bus)", "host_heartbeat"),
+    ("host process killed", "kill", None, r"live loop process died", "host_heartbeat"),
+    ("glove port closed", "lab", "glove_hang_up", r"glove (unit failed|stream stopped)", "glove"),
+    ("glove stream stopped", "lab", "glove_stop", r"glove stream stopped", "glove"),
+    ("CRC storm", "lab", "crc_storm", r"glove stream stopped.*bad CRC", "glove"),
+    ("loop hang", "loop", "hang", r"control loop stalled", "stall"),
+    ("NaN command", "loop", "nan", r"non-finite motor command input", None),
+    ("writer error (ENOSPC)", "writer", None, r"session writer failed.*No space left", None),
+    ("disk full", "disk", None, r"session writer failed.*disk full", None),
+    ("emergency stop", "engine", None, r"emergency stop", None),
+]
+
+
+def _timeout_ms(kind: str | None, rig) -> float | None:
+    return {
+        None: None,
+        "heartbeat": rig.drive.heartbeat_timeout_ms,
+        "host_heartbeat": rig.drive.host_heartbeat_timeout_ms,
+        "glove": rig.safety.glove_timeout_s * 1e3,
+        "stall": rig.safety.loop_stall_s * 1e3,
+    }[kind]
+
+
+class _TinyDisk:
+    """A 16 MB tmpfs for the disk-full fault (needs the right to mount; else None)."""
+
+    def __init__(self, where: Path) -> None:
+        self.path = where / "disk"
+        self.path.mkdir(parents=True)
+        r = subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=16m", "tmpfs", str(self.path)],
+            capture_output=True,
+            text=True,
+        )
+        self.ok = r.returncode == 0
+        self.why = r.stderr.strip()
+
+    def fill(self) -> None:
+        free = shutil.disk_usage(self.path).free
+        with open(self.path / "filler", "wb") as f:
+            f.write(b"\0" * max(0, free - 1_000_000))
+
+    def close(self) -> None:
+        if self.ok:
+            subprocess.run(["umount", "-l", str(self.path)], capture_output=True)
+
+
+def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None) -> dict:
+    lab = LabProcess()
+    rig_path = tmp / f"host-{lab.channel}.toml"
+    text = host_rig_text(lab, SIMULATED_RIG.read_text())
+    if stall_s is not None:
+        text = re.sub(r"(?m)^loop_stall_s = [0-9.]+", f"loop_stall_s = {stall_s}", text)
+    rig_path.write_text(text)
+    rig = load_rig(rig_path)
+    timeout_ms = _timeout_ms(timeout_kind, rig)
+    disk = None
+    out_dir = tmp
+    if where == "disk":
+        disk = _TinyDisk(tmp / name.replace(" ", "_"))
+        if not disk.ok:
+            lab.close()
+            return {"name": name, "status": "skipped", "reason": f"no tmpfs: {disk.why}"}
+        out_dir = disk.path
+    path = out_dir / f"{name.replace(' ', '_').replace('(', '').replace(')', '')}.h5"
+    loop = ProcessLoop(str(rig_path), 1)
+    info: dict = {}
+    try:
+        plan = build_plan(parse_protocol(PROTOCOL, "faults.toml"), 1)
+        eng = SessionEngine(plan, loop)
+        writer = SessionWriter(path)
+        eng.subscribe(writer)
+        syncs0 = lab.status()["enabled_syncs"]
+        fired = threading.Event()
+
+        def inject() -> None:
+            deadline = time.monotonic() + 5
+            while lab.status()["applied_torque_nm"] == 0.0 and time.monotonic() < deadline:
+                pass
+            info["torque_before_nm"] = lab.status()["applied_torque_nm"]
+            if where == "lab":
+                info["t"] = lab.inject(what)
+            elif where == "loop":
+                loop.inject(what)  # its time comes back in loop.injected
+            elif where == "kill":
+                info["t"] = time.monotonic()
+                os.kill(loop._proc.pid, signal.SIGKILL)
+            elif where == "writer":
+
+                def failing() -> None:
+                    info.setdefault("t", time.monotonic())
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+                writer._write_out = failing
+            elif where == "disk":
+                info["t"] = time.monotonic()
+                disk.fill()
+            elif where == "engine":
+                info["t"] = time.monotonic()
+                threading.Thread(target=eng.emergency_stop).start()
+
+        def on(e):
+            if isinstance(e, ev.SamplesAcquired) and e.start >= INJECT_AT and not fired.is_set():
+                fired.set()
+                inject()
+
+        eng.subscribe(on)
+        eng.run()
+        loop_samples = loop.trial_stats().get("samples")
+        t_inject = info.get("t", loop.injected.get(what))
+    finally:
+        loop.close()
+        st = lab.wait_zero_torque(timeout_s=3.0)
+        syncs1 = st["enabled_syncs"]
+        lab.close()
+    try:
+        recs = SessionFile(path).records()
+        r = recs[-1]
+        status, reason, n_file = r.status, r.abort_reason, r.n_samples
+    except Exception as e:  # the file itself is a result
+        status, reason, n_file = "unreadable", f"{type(e).__name__}: {e}", 0
+    if disk is not None:
+        disk.close()
+    if where == "kill" or loop_samples is None:
+        lost = (syncs1 - syncs0) - round(ZEROING_S * 1000) - n_file
+    else:
+        lost = loop_samples - n_file
+    zero_ms = None
+    if t_inject is not None and st["applied_torque_nm"] == 0.0 and st["zero_torque_since"]:
+        zero_ms = round((st["zero_torque_since"] - t_inject) * 1e3, 1)
+    limit = (timeout_ms or 0) + 100
+    ok = (
+        zero_ms is not None
+        and zero_ms <= limit
+        and lost == 0
+        and status == "aborted"
+        and bool(re.search(pattern, reason or ""))
+    )
+    return {
+        "name": name,
+        "zero_torque_ms": zero_ms,
+        "lost_samples": lost,
+        "status": status,
+        "reason": reason,
+        "timeout_ms": timeout_ms,
+        "goal_met": ok,
+        "torque_before_nm": info.get("torque_before_nm"),
+        "drive_state_after": st["state"],
+    }
+
+
+def main(argv: list[str]) -> dict:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks faults")
+    ap.add_argument("--only", help="run only the faults whose name contains this")
+    ap.add_argument(
+        "--stall-ms",
+        type=float,
+        help="the rig's loop_stall_s, in ms (default: the simulated rig's, 20): on a loaded "
+        "machine a late cycle would otherwise end trials before their fault",
+    )
+    a = ap.parse_args(argv)
+    stall_s = None if a.stall_ms is None else a.stall_ms / 1e3
+    load_before = os.getloadavg()
+    rows = []
+    with tempfile.TemporaryDirectory() as d:
+        for fault in FAULTS:
+            if a.only and a.only.lower() not in fault[0].lower():
+                continue
+            row = run_fault(*fault, Path(d), stall_s=stall_s)
+            print(
+                f"{row['name']:<24} zero torque {row.get('zero_torque_ms')!s:>7} ms"
+                f"  (timeout {row.get('timeout_ms')!s:>5})  lost {row.get('lost_samples')!s:>3}"
+                f"  {row.get('status')}: {row.get('reason')}",
+                flush=True,
+            )
+            rows.append(row)
+    ran = [r for r in rows if r["status"] != "skipped"]
+    return {
+        "faults": rows,
+        "goals": {
+            "zero_torque_ms": "≤ 100, or ≤ timeout_ms + 100",
+            "lost_samples": 0,
+            "status": "aborted, reason naming the fault",
+        },
+        "goals_met": all(r["goal_met"] for r in ran),
+        "loop_stall_ms": a.stall_ms or 1e3 * load_rig().safety.loop_stall_s,
+        "load_average_before": [round(x, 2) for x in load_before],
+        "load_average_after": [round(x, 2) for x in os.getloadavg()],
+        "machine": machine(),
+    }

@@ -1,0 +1,266 @@
+"""The simulated lab devices in a process of their own: the CiA 402 drive node and the glove unit,
+reached as a lab's host reaches them (a CAN bus shared between processes, ``udp_loopback``, and a
+serial port, a pty). The host (``steerlab run``, :class:`hardware.live.ProcessLoop`) then holds
+only what it holds in the lab, and a killed host is a real host kill: the drive goes on and must
+cut the torque by itself (its consumer heartbeat 0x1016, abort connection option 0x6007).
+
+Run it as ``python -m hardware.sim.lab --rig RIG.toml --channel NAME`` (the rig file is a
+simulated rig's: its ``[drive]``, ``[safety]`` and glove calibration). It prints one JSON line
+``{"ready": true, "pty": ..., "channel": ..., "pid": ...}``, then answers one JSON line per
+command line on stdin (``{"op": "status"}``, ``{"op": "inject", "fault": NAME}``,
+``{"op": "close"}``); end of stdin closes it. :class:`LabProcess` is the parent's handle and
+:func:`host_rig_text` writes the host's rig file for it.
+
+The world behind the motor shaft is a wheel (Table 1's 0.3 kg·m²) held by a relaxed hand (a
+spring and a damper, whose torque is the column torque): enough to see torque and motion at the
+drive, not a subject's arm model (that stays with the in-process simulated rig).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from dataclasses import replace
+from pathlib import Path
+
+from hardware.can.config import UDP_LOOPBACK
+from hardware.can.sim_node import SimulatedDrive
+from hardware.can.transport import open_bus
+
+FAULTS = (
+    "stop_heartbeat",  # the drive's own heartbeat stops (it still drives)
+    "go_silent",  # the link is cut: the drive hears and says nothing
+    "emcy",  # the drive faults: EMCY 0x2310, power stage off
+    "mute_pdo",  # SYNCs go unanswered
+    "glove_hang_up",  # the glove's serial port closes
+    "glove_stop",  # the glove stream stops
+    "crc_storm",  # 200 glove frames with a bad CRC
+)
+
+
+class HeldWheel:
+    """Wheel inertia with a relaxed hand on it (hardware.can.Plant), stepped once per SYNC."""
+
+    def __init__(self, fs_hz: float, inertia=0.3, k_hand=5.0, b_hand=1.0, offset_nm=0.05):
+        self.dt = 1.0 / fs_hz
+        self.j, self.k, self.b, self.offset = inertia, k_hand, b_hand, offset_nm
+        self.angle = self.velocity = self.motor = 0.0
+
+    def hand_torque(self) -> float:
+        return -(self.k * self.angle + self.b * self.velocity)
+
+    def step(self, motor_torque_nm: float) -> None:
+        self.motor = motor_torque_nm
+        acc = (motor_torque_nm + self.hand_torque()) / self.j
+        self.velocity += acc * self.dt  # semi-implicit Euler
+        self.angle += self.velocity * self.dt
+
+    def read(self) -> tuple[float, float, float, float]:
+        # driver torque: the torque the wheel exerts on the hand (minus the hand's on the wheel)
+        return self.angle, self.velocity, self.motor, -self.hand_torque() + self.offset
+
+    def grip(self, _t: float) -> tuple[float, float]:
+        return 20.0, 20.0
+
+
+class SimulatedLab:
+    """The drive node and glove unit of a simulated rig file, on ``channel`` (udp_loopback)."""
+
+    def __init__(self, rig_path: str | None, channel: str) -> None:
+        from hardware.glove.simulated import SimulatedGloveUnit
+        from hardware.rig import load_rig
+
+        rig = load_rig(rig_path)
+        self.config = replace(rig.drive, interface=UDP_LOOPBACK, channel=channel)
+        self.plant = HeldWheel(rig.loop_rate_hz)
+        self.bus = open_bus(self.config, filtered=False)
+        self.node = SimulatedDrive(self.bus, self.config, self.plant)
+        self.glove = SimulatedGloveUnit(self.plant.grip, rig.glove.calibration).start()
+
+    def status(self) -> dict:
+        n = self.node
+        return {
+            "t": time.monotonic(),
+            "applied_torque_nm": n.applied_torque_nm,
+            "zero_torque_since": n.zero_torque_since,
+            "state": n.state.value,
+            "watching_host": n.watching_host,
+            "host_heartbeats_lost": n.host_heartbeats_lost,
+            "connection_lost_at": n.connection_lost_at,
+            "sync_count": n.sync_count,
+            "enabled_syncs": n.enabled_syncs,
+            "errors": [repr(e) for e in n.errors],
+        }
+
+    def inject(self, fault: str) -> None:
+        n, g = self.node, self.glove
+        if fault == "stop_heartbeat":
+            n.stop_heartbeat()
+        elif fault == "go_silent":
+            n.go_silent()
+        elif fault == "emcy":
+            n.inject_fault(0x2310)
+        elif fault == "mute_pdo":
+            n.mute_pdo = True
+        elif fault == "glove_hang_up":
+            g.hang_up()
+        elif fault == "glove_stop":
+            g.stop_streaming()
+        elif fault == "crc_storm":
+            g.crc_error_next(200)
+        else:
+            raise ValueError(f"unknown fault {fault!r} (known: {', '.join(FAULTS)})")
+
+    def close(self) -> None:
+        for closer in (self.glove.close, self.node.close, self.bus.shutdown):
+            try:
+                closer()
+            except Exception:
+                pass
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m hardware.sim.lab", description=__doc__)
+    ap.add_argument("--rig", default=None, help="a simulated rig file (default: the shipped one)")
+    ap.add_argument("--channel", required=True, help="udp_loopback channel name")
+    args = ap.parse_args(argv)
+    from hardware.realtime import tune_process
+
+    tune_process()  # the drive node answers each SYNC: give it what the host may have
+    lab = SimulatedLab(args.rig, args.channel)
+    out = sys.stdout
+
+    def say(obj: dict) -> None:
+        out.write(json.dumps(obj) + "\n")
+        out.flush()
+
+    try:
+        say({"ready": True, "pty": lab.glove.port, "channel": args.channel, "pid": os.getpid()})
+        for line in sys.stdin:
+            try:
+                cmd = json.loads(line)
+                op = cmd.get("op")
+                if op == "status":
+                    say(lab.status())
+                elif op == "inject":
+                    t = time.monotonic()
+                    lab.inject(cmd["fault"])
+                    say({"t": t, "injected": cmd["fault"]})
+                elif op == "close":
+                    say({"closed": True})
+                    break
+                else:
+                    say({"error": f"unknown op {op!r}"})
+            except Exception as e:  # a bad command must not take the devices down
+                say({"error": f"{type(e).__name__}: {e}"})
+    finally:
+        lab.close()
+    return 0
+
+
+class LabProcess:
+    """Parent's handle on ``python -m hardware.sim.lab`` (see the module docstring)."""
+
+    def __init__(self, rig_path: str | None = None, *, start_timeout_s: float = 60.0) -> None:
+        self.channel = f"steerlab-lab-{uuid.uuid4().hex[:12]}"
+        root = Path(__file__).resolve().parents[2]
+        cmd = [sys.executable, "-m", "hardware.sim.lab", "--channel", self.channel]
+        if rig_path is not None:
+            cmd += ["--rig", str(rig_path)]
+        from hardware.realtime import SINGLE_THREADED_MATH
+
+        self.proc = subprocess.Popen(
+            cmd,
+            cwd=root,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            bufsize=1,
+            env={**os.environ, **SINGLE_THREADED_MATH},
+        )
+        self._lock = threading.Lock()
+        ready = self._read(start_timeout_s)
+        if not ready.get("ready"):
+            self.close()
+            raise RuntimeError(f"the simulated lab did not come up: {ready}")
+        self.pty = ready["pty"]
+        self.pid = ready["pid"]
+
+    def _read(self, timeout_s: float) -> dict:
+        result: list[str] = []
+        t = threading.Thread(target=lambda: result.append(self.proc.stdout.readline()))
+        t.daemon = True
+        t.start()
+        t.join(timeout_s)
+        if not result or not result[0]:
+            return {"error": f"no answer within {timeout_s} s (exit {self.proc.poll()})"}
+        return json.loads(result[0])
+
+    def ask(self, op: str, timeout_s: float = 10.0, **kw: object) -> dict:
+        with self._lock:
+            self.proc.stdin.write(json.dumps({"op": op, **kw}) + "\n")
+            self.proc.stdin.flush()
+            return self._read(timeout_s)
+
+    def status(self) -> dict:
+        return self.ask("status")
+
+    def inject(self, fault: str) -> float:
+        """Inject ``fault`` in the lab process; returns the time.monotonic() it was done."""
+        return self.ask("inject", fault=fault)["t"]
+
+    def wait_zero_torque(self, timeout_s: float = 5.0) -> dict:
+        """Poll until the drive applies zero torque (or the timeout); the last status."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            st = self.status()
+            if st.get("applied_torque_nm") == 0.0 or time.monotonic() > deadline:
+                return st
+            time.sleep(0.01)
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                self.ask("close", timeout_s=5.0)
+            except (OSError, ValueError):
+                pass
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        for f in (self.proc.stdin, self.proc.stdout):
+            try:
+                f.close()
+            except OSError:
+                pass
+
+    def __enter__(self) -> LabProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def host_rig_text(lab: LabProcess, simulated_rig_text: str) -> str:
+    """The host's rig file for ``lab``: the simulated rig's text with the drive on the lab's
+    udp_loopback channel, the glove on its pty and no ``[simulation]`` table (the host sees a
+    lab)."""
+    text = simulated_rig_text.split("\n[simulation]")[0]
+    text, n1 = re.subn(r'(?m)^interface = "virtual"', f'interface = "{UDP_LOOPBACK}"', text)
+    text, n2 = re.subn(r'(?m)^channel = "[^"]*"', f'channel = "{lab.channel}"', text)
+    text, n3 = re.subn(r'(?m)^port = "simulated"', f'port = "{lab.pty}"', text)
+    if (n1, n2, n3) != (1, 1, 1):
+        raise ValueError("not a simulated rig file's text (interface, channel, glove port)")
+    return text
+
+
+if __name__ == "__main__":
+    sys.exit(main())

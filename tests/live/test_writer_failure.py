@@ -1,0 +1,187 @@
+"""A failing session writer is a fault: the trial ends as aborted with zero torque at the drive,
+and the file keeps every sample written before the failure. Disk full for real (a small tmpfs
+filled by another writer), an injected ENOSPC, the file removed; and the free-space check
+before a session."""
+
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from hardware.live import ProcessLoop
+from protocols import events as ev
+from protocols.datafile import DataFileError, SessionFile, SessionWriter, check_free_space
+from protocols.engine import SessionEngine, State
+from protocols.session import build_plan
+from tests.hardware.can_wire import wait_for
+from tests.helpers import ROOT
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    d = tmp_path / "disk"
+    d.mkdir()
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(d)], capture_output=True, text=True
+    )
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here: {r.stderr.strip()}")
+    try:
+        yield d
+    finally:
+        subprocess.run(["umount", "-l", str(d)], capture_output=True)
+
+
+def _session(loop, protocol, path, inject, at_samples=1500):
+    eng = SessionEngine(build_plan(protocol, 2), loop)
+    writer = SessionWriter(path)
+    eng.subscribe(writer)
+    seen = []
+    eng.subscribe(seen.append)
+    fired = threading.Event()
+    info: dict = {}
+
+    def on(e):
+        if isinstance(e, ev.SamplesAcquired) and e.start >= at_samples and not fired.is_set():
+            fired.set()
+            info["t"] = time.monotonic()
+            info.update(inject(writer) or {})
+
+    eng.subscribe(on)
+    state = eng.run()
+    ends = [e for e in seen if isinstance(e, ev.TrialEnded)]
+    emitted = sum(e.n for e in seen if isinstance(e, ev.SamplesAcquired))
+    return state, ends, emitted, writer, info
+
+
+def _motor_off(devices):
+    assert not devices.drive.enabled
+    assert wait_for(lambda: devices.node.applied_torque_nm == 0.0, timeout=2.0)
+    assert devices.node.target_torque_permille == 0
+
+
+def test_disk_filled_mid_trial(devices, short_protocol, tiny_disk):
+    loop = devices.device_loop()
+    path = tiny_disk / "S02.h5"
+
+    def fill(_writer):  # another program fills the disk
+        free = shutil.disk_usage(tiny_disk).free
+        with open(tiny_disk / "filler", "wb") as f:
+            f.write(b"\0" * (free - 1_000_000))
+
+    state, (end,), emitted, writer, _ = _session(loop, short_protocol, path, fill)
+    assert state is State.IDLE and end.status == "aborted"
+    assert "session writer failed" in end.reason and "disk full" in end.reason
+    assert "below the writer's reserve" in end.reason
+    _motor_off(devices)
+    # The loop stopped at the block the writer refused, and the file holds every sample, that
+    # block's too (the writer failed on it, before the subscribers after it saw it).
+    (r,) = SessionFile(path).records()
+    assert r.status == "aborted" and "disk full" in r.abort_reason
+    assert r.n_samples == loop.trial_stats()["samples"] == emitted + 50 >= 1500
+
+
+def test_io_error_mid_trial(devices, short_protocol, tmp_path):
+    loop = devices.device_loop()
+    path = tmp_path / "S02.h5"
+
+    def break_disk(writer):
+        def write_out():
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        writer._write_out = write_out
+        return {"written": writer._written}
+
+    state, (end,), emitted, writer, info = _session(loop, short_protocol, path, break_disk)
+    assert end.status == "aborted" and "No space left on device" in end.reason
+    assert writer.failure is not None
+    _motor_off(devices)
+    assert loop.trial_stats()["samples"] == emitted + 50  # nothing after the failing block
+    (r,) = SessionFile(path).records()  # readable
+    assert r.status == "aborted" and "No space left on device" in r.abort_reason
+    # every sample written before the failure (the writer writes every 0.5 s)
+    assert r.n_samples >= info["written"] >= 1000
+    assert r.n_samples <= emitted
+
+
+def test_session_file_removed_mid_trial(devices, short_protocol, tmp_path):
+    loop = devices.device_loop()
+    path = tmp_path / "S02.h5"
+    state, (end,), emitted, writer, _ = _session(
+        loop, short_protocol, path, lambda w: path.unlink()
+    )
+    assert end.status == "aborted" and "removed or replaced" in end.reason
+    assert not path.exists()
+    _motor_off(devices)
+    assert loop.trial_stats()["samples"] == emitted + 50  # stopped at the refused block
+
+
+@pytest.fixture
+def lenient_rig(tmp_path):
+    text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
+    p = tmp_path / "rig.toml"
+    text = text.replace("host_heartbeat_timeout_ms = 80 ", "host_heartbeat_timeout_ms = 100 ")
+    p.write_text(text.replace("loop_stall_s = 0.02 ", "loop_stall_s = 0.5 "))
+    return p
+
+
+def test_writer_failure_stops_the_loop_process(lenient_rig, short_protocol, tmp_path):
+    """The loop in its own process must not go on applying the perturbation (it did, for the
+    rest of the trial) when the engine lets go of the trial."""
+    loop = ProcessLoop(str(lenient_rig), 2)
+    try:
+
+        def break_disk(writer):
+            def write_out():
+                raise OSError(errno.EIO, os.strerror(errno.EIO))
+
+            writer._write_out = write_out
+
+        path = tmp_path / "S02.h5"
+        t0 = time.monotonic()
+        state, (end,), emitted, _, info = _session(loop, short_protocol, path, break_disk)
+        assert end.status == "aborted" and "Input/output error" in end.reason
+        assert loop.status["drive_enabled"] is False
+        samples = loop.trial_stats()["samples"]
+        # ended within a few blocks of the failure, not at the trial's end (6500)
+        assert emitted < samples < emitted + 1000, (emitted, samples)
+        assert time.monotonic() - t0 < 30
+    finally:
+        loop.close()
+    (r,) = SessionFile(path).records()
+    assert r.status == "aborted"
+
+
+def test_free_space_check_names_both_figures(tmp_path):
+    free = shutil.disk_usage(tmp_path).free
+    assert check_free_space(tmp_path, 1000) == pytest.approx(free, rel=0.01)
+    with pytest.raises(DataFileError) as e:
+        check_free_space(tmp_path, 10 * free)
+    msg = str(e.value)
+    import re
+
+    m = re.search(r"(\d+\.\d) MB free, the session needs (\d+\.\d) MB", msg)
+    assert str(tmp_path) in msg and m, msg
+    assert float(m.group(1)) == pytest.approx(free / 1e6, rel=0.01)
+    assert float(m.group(2)) == pytest.approx(10 * free / 1e6, rel=1e-6)
+
+
+def test_steerlab_run_refuses_a_disk_too_small_for_the_session(tiny_disk):
+    p = subprocess.run(
+        [sys.executable, "-m", "app.cli", "run", "--subject", "1", "--out", str(tiny_disk)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert p.returncode == 2, p.stderr
+    assert "not enough free space" in p.stderr and "MB free" in p.stderr
+    assert "the session needs 51.0 MB" in p.stderr  # the paper's protocol: 18 trials
+    assert not (tiny_disk / "S01.h5").exists()
