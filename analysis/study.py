@@ -45,6 +45,7 @@ from analysis.periods import (
 from protocols.records import (
     STATUS_ABORTED,
     STATUS_COMPLETE,
+    STATUS_DAMAGED,
     STATUS_INCOMPLETE,
     STATUS_SUPERSEDED,
     TrialRecord,
@@ -320,6 +321,8 @@ def _skip_reason(rec: TrialRecord) -> str | None:
         return "incomplete (still running, or the recording stopped mid-trial)"
     if rec.status == STATUS_SUPERSEDED:
         return "superseded by a later attempt of the same trial"
+    if rec.status == STATUS_DAMAGED:
+        return rec.abort_reason or "damaged"
     if rec.status != STATUS_COMPLETE:
         return f"unknown status {rec.status!r}"
     if rec.time_varying:

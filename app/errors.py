@@ -12,6 +12,8 @@ _USER_ERRORS = (
     ("app.simulate", "SimulateError"),
     ("app.run", "RunError"),
     ("protocols.datafile", "DataFileError"),
+    ("protocols.writelock", "LockedError"),
+    ("protocols.names", "UnsafeNameError"),
     ("protocols.interchange", "InterchangeError"),
     ("protocols.protocol", "ProtocolError"),
     ("analysis.report", "ReportError"),

@@ -19,11 +19,13 @@ from pathlib import Path
 
 from hardware.live import ProcessLoop
 from hardware.rig import load_rig
-from protocols.datafile import SessionFile, SessionWriter
+from protocols.datafile import SessionFile, SessionWriter, creating_path
 from protocols.engine import SessionEngine, State
 from protocols.events import StateChanged, TrialEnded, TrialStarted
+from protocols.names import inside
 from protocols.protocol import load_protocol
 from protocols.session import build_plan
+from protocols.writelock import LockedError, WriterLock
 
 PIDFILE = "steerlab-run.pid"
 
@@ -53,8 +55,24 @@ def run_session(
         )
     plan = build_plan(protocol, subject_number)
     out = Path(out_dir)
-    path = out / f"{plan.subject}.h5"
+    out.mkdir(parents=True, exist_ok=True)
+    path = inside(out, out / f"{plan.subject}.h5")
+    lock = WriterLock(path)
+    try:
+        lock.acquire()  # before anything is checked or written: one writer per session file
+    except LockedError as e:
+        raise RunError(str(e)) from None
+    try:
+        return _run_locked(rig_path, rig, protocol, plan, subject_number, out, path, lock,
+                           resume=resume, breaks=breaks, say=say)  # fmt: skip
+    finally:
+        lock.release()
+
+
+def _run_locked(rig_path, rig, protocol, plan, subject_number, out, path, lock, *, resume,
+                breaks, say) -> State:  # fmt: skip
     attempts = None
+    creating_path(path).unlink(missing_ok=True)  # left by a kill while the file was created
     if path.exists():
         if not resume:
             raise RunError(f"{path}: exists already; pass --resume to continue this session")
@@ -62,7 +80,6 @@ def run_session(
         if sf.attrs.get("protocol_toml") != protocol.source_text:
             raise RunError(f"{path}: was recorded with a different protocol; cannot resume")
         attempts = sf.attempts()
-    out.mkdir(parents=True, exist_ok=True)
 
     say(f"bringing up the rig ({rig.source}) ...")
     loop = ProcessLoop(rig_path, subject_number)
@@ -70,7 +87,7 @@ def run_session(
     extra = {"rig": rig.describe(), "realtime_tuning": loop.realtime}
     if loop.physiology is not None:
         extra.update({"simulated": True, "simulated_subject": loop.physiology})
-    writer = SessionWriter(path, extra_attributes=extra)
+    writer = SessionWriter(path, extra_attributes=extra, lock=lock)
     engine.subscribe(writer)
     engine.subscribe(_reporter(say, len(plan.trials)))
 
