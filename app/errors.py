@@ -17,6 +17,7 @@ _USER_ERRORS = (
     ("protocols.interchange", "InterchangeError"),
     ("protocols.protocol", "ProtocolError"),
     ("analysis.report", "ReportError"),
+    ("analysis.study", "NoAnalysableTrialError"),
     ("analysis.diagnosis", "DiagnosisError"),
     ("hardware.can.config", "ConfigError"),
     ("hardware.live", "RigError"),
