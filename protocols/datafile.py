@@ -168,13 +168,13 @@ class SessionWriter:
                 except LockedError as e:
                     raise DataFileError(str(e)) from None
             try:
-                self.f = h5py.File(self.path, "a", libver="latest")
+                self.f = h5py.File(self.path, "a", libver="latest", locking=False)
             except OSError as e:
                 if "already open for write" not in str(e) or not self.path.exists():
                     raise DataFileError(f"{self.path}: cannot open for writing: {e}") from None
                 # A writer died with the file open (we hold the lock: it is not alive).
                 self.recovered_flags = _clear_crash_flags(self.path)
-                self.f = h5py.File(self.path, "a", libver="latest")
+                self.f = h5py.File(self.path, "a", libver="latest", locking=False)
                 self.f.attrs["recovered_utc"] = _now()
         return self.f
 
@@ -410,6 +410,11 @@ def _open_for_reading(path: Path) -> h5py.File:
     plain read mode, whose end-of-file check makes a truncated file an error at once (SWMR
     reading skips it and retries damaged metadata for minutes). A file whose writer died with
     it open has its "open for write" flag cleared first (as ``h5clear -s``), under the lock.
+
+    HDF5's own file locking is off for readers and for the writer (``locking=False``): a
+    reader's shared lock would otherwise make the writer's next open fail mid-session. One
+    writer is ensured by the writer lock; a reader is kept out of the writer's plain-mode
+    moments by the superblock's "open for write" flag, which HDF5 checks on every open.
     """
     if not path.exists():
         raise DataFileError(f"{path}: no such file")
@@ -418,8 +423,8 @@ def _open_for_reading(path: Path) -> h5py.File:
         live = live_writer(path)
         try:
             if live is not None:
-                return h5py.File(path, "r", libver="latest", swmr=True)
-            return h5py.File(path, "r", libver="latest")
+                return h5py.File(path, "r", libver="latest", swmr=True, locking=False)
+            return h5py.File(path, "r", libver="latest", locking=False)
         except OSError as e:
             msg = str(e)
         crash_flag = "already open for write" in msg or "not already open for SWMR" in msg

@@ -32,6 +32,7 @@ from protocols.datafile import (
     UNITS,
     SessionFile,
     _now,
+    _open_for_reading,
     _set_attrs,
     session_files,
     software_version,
@@ -63,7 +64,7 @@ def export_study(session_dir: str | Path, out_dir: str | Path) -> list[Path]:
     written = []
     for path in files:
         sf = SessionFile(path)
-        with h5py.File(path, "r", libver="latest", swmr=True) as f:
+        with _open_for_reading(path) as f:
             for rec in sf.records():
                 g = f["trials"][rec.source.rsplit("/", 1)[-1]]
                 written.append(_export_trial(rec, g, out, sf))
