@@ -590,10 +590,21 @@ class SessionFile:
 
 
 def _what_is_damaged(e: BaseException) -> str:
-    msg = str(e)
-    if "fletcher32" in msg or "checksum" in msg:
-        return f"damaged: a data chunk fails its checksum ({msg})"
-    return f"damaged ({type(e).__name__}: {msg})"
+    if isinstance(e, DataFileError):
+        return str(e)
+    return f"damaged ({type(e).__name__}: {e})"
+
+
+def _read_dataset(where: str, name: str, d: h5py.Dataset) -> np.ndarray:
+    try:
+        return d[()]
+    except OSError as e:
+        what = (
+            "a chunk fails its Fletcher-32 checksum"
+            if d.fletcher32 and "filter" in str(e)
+            else f"unreadable ({e})"
+        )
+        raise DataFileError(f"{where}: dataset {name!r} is damaged: {what}") from None
 
 
 def _record_from_group(
@@ -620,7 +631,7 @@ def _record_from_group(
     wanted = None if extra_channels is None else set(CORE_CHANNELS) | set(extra_channels)
     for name, d in g.items():
         if isinstance(d, h5py.Dataset) and name != "marks" and (wanted is None or name in wanted):
-            data[name] = np.asarray(d[()], dtype=float)
+            data[name] = np.asarray(_read_dataset(where, name, d), dtype=float)
     core = CORE_CHANNELS
     n = min((len(data[c]) for c in core if c in data), default=0)
     for c in core:
@@ -640,7 +651,7 @@ def _record_from_group(
             ) from None
     marks = []
     if "marks" in g:
-        for m in g["marks"][()]:
+        for m in _read_dataset(where, "marks", g["marks"]):
             marks.append(
                 {
                     "sample": int(m["sample"]),

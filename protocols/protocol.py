@@ -12,6 +12,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from protocols.names import UnsafeNameError, check_name
 from protocols.perturbation import PerturbationSpec
 
 DEFAULT_PROTOCOL = "pronker2017.toml"
@@ -317,6 +318,10 @@ def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
             raise ProtocolError(f"{where}: unknown field(s) {sorted(unknown)}")
         if "name" not in c or not isinstance(c["name"], str) or not c["name"].strip():
             raise ProtocolError(f"{where}.name: required, a non-empty string")
+        try:  # the name becomes part of HDF5 group and file names: no '/', '..', NUL
+            check_name(c["name"].strip(), f"{where}.name")
+        except UnsafeNameError as e:
+            raise ProtocolError(str(e)) from None
         instr = c.get("instructions", "")
         if not isinstance(instr, str):
             raise ProtocolError(f"{where}.instructions: expected a string")
