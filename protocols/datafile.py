@@ -122,8 +122,10 @@ class SessionWriter:
     - A kill while it is open leaves the superblock's "open for write" flag set; the next writer
       or reader, holding the lock, clears it (as ``h5clear -s``): every flushed sample is kept.
 
-    ``lock``: True takes the lock now; a held :class:`WriterLock` is used (the caller releases
-    it); False means the caller holds it for this file in another process (simulate's workers).
+    ``lock``: True takes the lock now and holds it to the end of the session (or :meth:`close`);
+    a held :class:`WriterLock` is used and left to the caller to release (``run``, the GUI, which
+    hold it across several runs of the engine); False means the caller holds it for this file in
+    another process (simulate's workers).
     """
 
     def __init__(
@@ -214,7 +216,9 @@ class SessionWriter:
             case ev.TrialSuperseded():
                 self._superseded(event)
             case ev.SessionEnded():
-                self._close_file()
+                # The lock this writer took itself ends with the session (a later run of the
+                # engine takes it again); a lock its caller passed stays the caller's.
+                self.close()
 
     def _session_attributes(self, e: ev.SessionStarted) -> dict:
         return {
