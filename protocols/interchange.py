@@ -499,16 +499,9 @@ def read_trial(csv_path: Path) -> TrialRecord:
             f"{csv_path}: {n} data row(s); a complete trial needs at least {MIN_TRIAL_ROWS} "
             "(an aborted or incomplete one may have fewer)"
         )
-    stop = meta.get("measured_stop")
-    if stop is not None and stop > n:
-        raise InterchangeError(
-            f"{meta_path}: field 'measured_stop' ({stop}) is past the last of the {n} rows"
-        )
-    start = meta.get("measured_start")
-    if start is not None and start >= max(n, 1):
-        raise InterchangeError(
-            f"{meta_path}: field 'measured_start' ({start}) is past the last of the {n} rows"
-        )
+    # measured_start/stop may lie past the data: a trial stopped early keeps its planned
+    # window (the analysis decides what a short trial is good for).
+    start, stop = meta.get("measured_start"), meta.get("measured_stop")
     core = {c: data.pop(c) for c in CORE_CHANNELS}
     bd = meta.get("boundary_deg")
     attrs = dict(meta["_trial_attributes"])

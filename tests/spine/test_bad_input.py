@@ -84,12 +84,6 @@ IMPORT_CASES = [
         ["t.json", "'measured_start'", "before the stop"],
     ),
     (
-        "measured past end",
-        GOOD_CSV,
-        {**M, "measured_start": 0, "measured_stop": 301},
-        ["t.json", "'measured_stop'", "past the last"],
-    ),
-    (
         "design junk",
         GOOD_CSV,
         {**M, "perturbation_design": {"period_s": "x"}},
