@@ -68,8 +68,12 @@ def _fmt_column(values: np.ndarray, exact64: bool) -> list[str]:
     return [f % v for v in values]
 
 
+# What a simulation knows and measured data do not: left out by a blind export.
+SIMULATION_TRUTH = ("world", "simulated_subject", "simulation_seed", "simulated", "mechanisms")
+
+
 def export_study(
-    session_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False
+    session_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False, blind: bool = False
 ) -> list[Path]:
     """Write every trial of every session file as CSV + JSON. Returns the CSV paths.
 
@@ -77,6 +81,10 @@ def export_study(
     every trial is written: nothing half-written, and nothing written through a link already
     in ``out_dir``. An existing non-empty ``out_dir`` is refused unless ``overwrite``, which
     replaces it as a whole. Damaged trials are left out and listed in :attr:`last_skipped`.
+
+    Every session and trial attribute is exported, so import gives them all back. ``blind``
+    leaves out what only a simulation knows (:data:`SIMULATION_TRUTH`, ``true_*`` channels),
+    for testing an analysis on simulated data as if measured (``steerlab diagnose``).
     """
     files = session_files(session_dir)
     if not files:
@@ -104,7 +112,7 @@ def export_study(
                         skipped.append(f"{rec.source}: {rec.abort_reason}")
                         continue
                     g = f["trials"][rec.source.rsplit("/", 1)[-1]]
-                    written.append(_export_trial(rec, g, tmp, sf))
+                    written.append(_export_trial(rec, g, tmp, sf, blind))
         if target.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{target.name}.replaced-", dir=target.parent))
             os.rename(target, old / target.name)
@@ -184,10 +192,13 @@ def _attributes(meta: dict, key: str, path: Path) -> dict:
 _NOT_ATTRIBUTES = {"marks", "status_recorded"}  # reader-side additions, not stored attributes
 
 
-def _export_trial(rec: TrialRecord, g: h5py.Group, out: Path, sf: SessionFile) -> Path:
+def _export_trial(
+    rec: TrialRecord, g: h5py.Group, out: Path, sf: SessionFile, blind: bool = False
+) -> Path:
     name = trial_name(rec)
     cols = {c: getattr(rec, c) for c in CORE_CHANNELS}
-    cols.update(rec.extra)
+    cols.update({k: v for k, v in rec.extra.items() if not (blind and k.startswith("true_"))})
+    hidden = set(SIMULATION_TRUTH) if blind else set()
     n = len(rec.time_s)
     text_cols = []
     dtypes = {}
@@ -227,9 +238,11 @@ def _export_trial(rec: TrialRecord, g: h5py.Group, out: Path, sf: SessionFile) -
         # Everything the session file held, so that import gives it all back.
         "marks": rec.attrs.get("marks", []),
         "trial_attributes": {
-            k: encode_attr(v) for k, v in rec.attrs.items() if k not in _NOT_ATTRIBUTES
+            k: encode_attr(v)
+            for k, v in rec.attrs.items()
+            if k not in _NOT_ATTRIBUTES and k not in hidden
         },
-        "session_attributes": {k: encode_attr(v) for k, v in sf.attrs.items()},
+        "session_attributes": {k: encode_attr(v) for k, v in sf.attrs.items() if k not in hidden},
     }
     with open(json_path, "x") as fh:
         fh.write(json.dumps(meta, indent=1, allow_nan=False))

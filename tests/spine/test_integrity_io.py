@@ -254,3 +254,15 @@ def test_import_leaves_nothing_when_a_file_is_bad(session, tmp_path):
     with pytest.raises(InterchangeError, match=r"field 'status' must be one of"):
         import_study(csv, tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def test_a_blind_export_leaves_out_only_what_the_simulation_knows(session, tmp_path):
+    export_study(session.parent, tmp_path / "csv", blind=True)
+    text = "".join(p.read_text() for p in (tmp_path / "csv").glob("*.json"))
+    assert '"world"' not in text and '"simulated_subject"' not in text
+    (back,) = import_study(tmp_path / "csv", tmp_path / "back")
+    root0, _, _ = _all_attrs(session)
+    root1, _, _ = _all_attrs(back)
+    assert {"world", "simulated", "simulation_seed"} & set(root1) == set()
+    kept = {k for k in root0 if k not in ("world", "simulated", "simulation_seed")}
+    assert all(_equal(root0[k], root1[k]) for k in kept)
