@@ -440,8 +440,13 @@ def _open_for_reading(path: Path) -> h5py.File:
             try:
                 with WriterLock(path, wait_s=OPEN_RETRY_S):
                     _clear_crash_flags(path)
-            except LockedError:
-                pass  # a writer started meanwhile: open it as a live file
+            except LockedError as e:
+                if live_writer(path) is None:  # no writer: we may not create the lock file
+                    raise DataFileError(
+                        f"{path}: left open by a writer that died; {e}; run `h5clear -s "
+                        f"{path}` as a user who may write there"
+                    ) from None
+                # else a writer started meanwhile: open it as a live file
             if time.monotonic() < deadline:
                 continue
         if "truncat" in msg or "signature" in msg:
