@@ -761,6 +761,11 @@ def fit_table(
     """The paper's Table 2: FIT% of the local LTI model and of each LPV model at every point."""
     pts = as_operating_points(points)
     included, excluded = select_operating_points(pts, exclude)
+    if not included:
+        raise ValueError(
+            "no operating point to build an LPV model from (no condition with an analysable "
+            f"trial{', after excluding ' + ', '.join(sorted(excluded)) if excluded else ''})"
+        )
     models = {m: build_lpv(included, m, order=order, zeros=zeros) for m in methods}
     rows = []
     for p in pts:
@@ -963,6 +968,11 @@ def analyse_lpv(
     """Models, Table 2 and leave-one-out in one call (leave-one-out only with ≥ 3 points)."""
     pts = as_operating_points(points)
     included, excluded = select_operating_points(pts, exclude)
+    if not included:
+        raise ValueError(
+            "no operating point to build an LPV model from (no condition with an analysable "
+            f"trial{', after excluding ' + ', '.join(sorted(excluded)) if excluded else ''})"
+        )
     models = {m: build_lpv(included, m, order=order, zeros=zeros) for m in methods}
     table = fit_table(pts, methods=methods, order=order, exclude=exclude, zeros=zeros)
     loo = None

@@ -52,6 +52,7 @@ from analysis.periods import (
 from protocols.records import (
     STATUS_ABORTED,
     STATUS_COMPLETE,
+    STATUS_DAMAGED,
     STATUS_INCOMPLETE,
     STATUS_SUPERSEDED,
     TrialRecord,
@@ -92,6 +93,21 @@ class AnalysisOptions:
             "confidence": self.confidence,
             "compare_weightings": self.compare_weightings,
         }
+
+
+class NoAnalysableTrialError(ValueError):
+    """Not one trial of the study can be analysed (e.g. a session stopped before its first
+    measured trial ended); the message counts the skipped trials by reason and names the files."""
+
+    def __init__(self, records: Sequence[TrialRecord], skipped: Sequence[SkippedTrial]):
+        reasons: dict[str, int] = {}
+        for s in skipped:
+            reasons[s.reason.split(":")[0]] = reasons.get(s.reason.split(":")[0], 0) + 1
+        files = sorted({r.source.split(":/")[0] for r in records if r.source})
+        super().__init__(
+            f"{', '.join(files) or 'the study'}: no analysable trial among {len(records)} "
+            f"(skipped: {', '.join(f'{n} {k}' for k, n in sorted(reasons.items()))})"
+        )
 
 
 @dataclass(frozen=True)
@@ -354,6 +370,8 @@ def _skip_reason(rec: TrialRecord) -> str | None:
         return "incomplete (still running, or the recording stopped mid-trial)"
     if rec.status == STATUS_SUPERSEDED:
         return "superseded by a later attempt of the same trial"
+    if rec.status == STATUS_DAMAGED:
+        return rec.abort_reason or "damaged"
     if rec.status != STATUS_COMPLETE:
         return f"unknown status {rec.status!r}"
     if rec.time_varying:
@@ -457,6 +475,8 @@ def analyze_study(
         skipped.append(
             SkippedTrial(records[i].label(), records[i].source, f"not analysable: {msg}")
         )
+    if not done and not any(r.time_varying for r in records):
+        raise NoAnalysableTrialError(records, skipped)
 
     cells: dict[tuple[str, str], list[TrialAnalysis]] = {}
     for t in done:

@@ -63,7 +63,9 @@ def _world_from_model(path: str):
 def _cmd_export(a: argparse.Namespace) -> int:
     from protocols.interchange import export_study
 
-    paths = export_study(a.dir, a.out)
+    paths = export_study(a.dir, a.out, overwrite=a.overwrite, blind=a.blind)
+    for line in export_study.last_skipped:
+        print(f"steerlab export: skipped a damaged trial: {line}", file=sys.stderr)
     print(f"exported {len(paths)} trial(s) to {a.out}")
     return 0
 
@@ -148,6 +150,15 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("export", help="session files → trial interchange CSV + JSON")
     e.add_argument("dir")
     e.add_argument("--out", required=True)
+    e.add_argument(
+        "--overwrite", action="store_true", help="replace --out if it exists and is not empty"
+    )
+    e.add_argument(
+        "--blind",
+        action="store_true",
+        help="leave out what only a simulation knows (its world, subject, seed, true_* "
+        "channels), to analyse simulated data as if measured",
+    )
     e.set_defaults(func=_cmd_export)
 
     i = sub.add_parser("import", help="trial interchange CSV + JSON → session files")

@@ -23,11 +23,19 @@ from pathlib import Path
 from hardware.live import ProcessLoop
 from hardware.realtime import realtime_warnings
 from hardware.rig import load_rig
-from protocols.datafile import SessionFile, SessionWriter, check_free_space, session_bytes
+from protocols.datafile import (
+    SessionFile,
+    SessionWriter,
+    check_free_space,
+    creating_path,
+    session_bytes,
+)
 from protocols.engine import SessionEngine, State
 from protocols.events import StateChanged, TrialEnded, TrialStarted
+from protocols.names import inside
 from protocols.protocol import load_protocol
 from protocols.session import build_plan, subject_id
+from protocols.writelock import LockedError, WriterLock
 
 PIDFILE_GLOB = "steerlab-run-*.pid"
 
@@ -146,31 +154,40 @@ def run_session(
         )
     plan = build_plan(protocol, subject_number)
     out = Path(out_dir)
-    path = out / f"{plan.subject}.h5"
-    attempts = None
-    if path.exists():
-        if not resume:
-            raise RunError(f"{path}: exists already; pass --resume to continue this session")
-        sf = SessionFile(path)
-        if sf.attrs.get("protocol_toml") != protocol.source_text:
-            raise RunError(f"{path}: was recorded with a different protocol; cannot resume")
-        attempts = sf.attempts()
     out.mkdir(parents=True, exist_ok=True)
-    check_free_space(out, session_bytes(plan))
-    me = SessionProcess.mine(
-        pidfile_path(out, plan.subject),
-        plan.subject,
-        str(Path(rig.source).resolve()),
-        out.resolve(),
-    )
-    _claim(me, say)
+    path = inside(out, out / f"{plan.subject}.h5")
+    lock = WriterLock(path)
     try:
-        return _run(me, rig, rig_path, subject_number, plan, path, attempts, breaks, say)
+        lock.acquire()  # before anything is checked or written: one writer per session file
+    except LockedError as e:
+        raise RunError(str(e)) from None
+    try:
+        attempts = None
+        creating_path(path).unlink(missing_ok=True)  # left by a kill while the file was created
+        if path.exists():
+            if not resume:
+                raise RunError(f"{path}: exists already; pass --resume to continue this session")
+            sf = SessionFile(path)
+            if sf.attrs.get("protocol_toml") != protocol.source_text:
+                raise RunError(f"{path}: was recorded with a different protocol; cannot resume")
+            attempts = sf.attempts()
+        check_free_space(out, session_bytes(plan))
+        me = SessionProcess.mine(
+            pidfile_path(out, plan.subject),
+            plan.subject,
+            str(Path(rig.source).resolve()),
+            out.resolve(),
+        )
+        _claim(me, say)
+        try:
+            return _run(me, rig, rig_path, subject_number, plan, path, attempts, breaks, say, lock)
+        finally:
+            _release(me)
     finally:
-        _release(me)
+        lock.release()
 
 
-def _run(me, rig, rig_path, subject_number, plan, path, attempts, breaks, say) -> State:
+def _run(me, rig, rig_path, subject_number, plan, path, attempts, breaks, say, lock) -> State:
     # The stop signals act from now on (a stop during the rig's bring-up ends the session before
     # its first trial), not only once the engine runs.
     holder: dict = {}
@@ -194,7 +211,7 @@ def _run(me, rig, rig_path, subject_number, plan, path, attempts, breaks, say) -
         extra = {"rig": rig.describe(), "realtime_tuning": loop.realtime}
         if loop.physiology is not None:
             extra.update({"simulated": True, "simulated_subject": loop.physiology})
-        writer = SessionWriter(path, extra_attributes=extra)
+        writer = SessionWriter(path, extra_attributes=extra, lock=lock)
         engine.subscribe(writer)
         engine.subscribe(_reporter(say, len(plan.trials)))
         holder["engine"] = engine

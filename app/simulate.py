@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -12,16 +13,21 @@ from hardware.sim.physiology import PopulationSpread, make_population
 from hardware.sim.rig import simulated_rig
 from hardware.sim.world import WorldConfig
 from protocols.datafile import (
+    FORMAT,
     DataFileError,
     SessionFile,
     SessionWriter,
     check_free_space,
+    creating_path,
     session_bytes,
+    session_files,
 )
 from protocols.engine import SessionEngine, State
 from protocols.events import TrialEnded
+from protocols.names import inside
 from protocols.protocol import Protocol, load_protocol
 from protocols.session import build_plan, subject_id
+from protocols.writelock import LockedError, WriterLock
 
 
 class SimulateError(ValueError):
@@ -37,6 +43,7 @@ class SimulationJob:
     realtime: bool
     world: WorldConfig
     resume: bool
+    locked: bool = False  # the calling process holds the file's writer lock
 
 
 def session_path(out_dir: str | Path, subject: str) -> Path:
@@ -60,6 +67,7 @@ def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | Non
     engine = SessionEngine(plan, loop, attempts=attempts)
     writer = SessionWriter(
         path,
+        lock=not job.locked,
         extra_attributes={
             "simulated": True,
             "simulation_seed": job.seed,
@@ -136,15 +144,82 @@ def simulate_study(
     protocol: Protocol = load_protocol(protocol_path)  # validates before anything is written
     out = Path(out_dir)
     subjects = [subject_id(i) for i in range(1, n_subjects + 1)]
-    check_output(out, subjects, resume=resume, overwrite=overwrite, protocol=protocol)
+    if resume and overwrite:
+        raise SimulateError("--resume and --overwrite exclude each other")
+    if out.exists() and not out.is_dir():
+        raise SimulateError(f"{out}: exists and is not a directory")
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    check_free_space(out, n_subjects * session_bytes(build_plan(protocol, 1)))
-    if overwrite:
+    with contextlib.ExitStack() as held:
+        try:
+            # Every file this run writes or removes is locked first, then checked.
+            for s in subjects:
+                held.enter_context(WriterLock(inside(out, session_path(out, s))))
+            check_output(out, subjects, resume=resume, overwrite=overwrite, protocol=protocol)
+            stale = _stale_files(out, subjects) if overwrite else []
+            for p in stale:
+                held.enter_context(WriterLock(p))
+        except (LockedError, SimulateError) as e:
+            held.close()
+            if created:
+                with contextlib.suppress(OSError):
+                    out.rmdir()
+            if isinstance(e, LockedError):
+                raise SimulateError(str(e)) from None
+            raise
+        check_free_space(out, n_subjects * session_bytes(build_plan(protocol, 1)))
         for s in subjects:
-            session_path(out, s).unlink(missing_ok=True)
+            creating_path(session_path(out, s)).unlink(missing_ok=True)  # a killed creation
+        if overwrite:
+            for s in subjects:
+                session_path(out, s).unlink(missing_ok=True)
+            for p in stale:
+                p.unlink()
+        return _simulate_locked(
+            out, subjects, n_subjects, seed, protocol_path, protocol, realtime, resume, jobs,
+            world, progress,
+        )  # fmt: skip
+
+
+def _stale_files(out: Path, subjects: list[str]) -> list[Path]:
+    """Session files in ``out`` from an earlier study that ``--overwrite`` replaces. Anything
+    there that is not a Steerlab session file is not ours to remove: refuse."""
+    ours = {session_path(out, s).name for s in subjects}
+    stale = []
+    for p in session_files(out):
+        if p.name in ours:
+            continue
+        if p.is_symlink() or not p.is_file():
+            raise SimulateError(f"{p}: not a regular file; not removing it (--overwrite)")
+        try:
+            fmt = SessionFile(p).attrs.get("format")
+        except DataFileError as e:
+            raise SimulateError(
+                f"--overwrite would leave {p} beside the new study and cannot tell what it is "
+                f"({e}); move it away first"
+            ) from None
+        if fmt != FORMAT:
+            raise SimulateError(f"{p}: not a Steerlab session file; move it away first")
+        stale.append(p)
+    return stale
+
+
+def _simulate_locked(
+    out: Path,
+    subjects: list[str],
+    n_subjects: int,
+    seed: int,
+    protocol_path: str | None,
+    protocol: Protocol,
+    realtime: bool,
+    resume: bool,
+    jobs: int | None,
+    world: WorldConfig | None,
+    progress: Callable[[int, int, str], None] | None,
+) -> list[dict]:
     world = world or WorldConfig(fs_hz=protocol.loop_rate_hz)
     jobs_list = [
-        SimulationJob(i, str(out), seed, protocol_path, realtime, world, resume)
+        SimulationJob(i, str(out), seed, protocol_path, realtime, world, resume, locked=True)
         for i in range(1, n_subjects + 1)
     ]
     total = n_subjects * len(build_plan(protocol, 1).trials)

@@ -117,7 +117,7 @@ def make_study(
     proto.write_text(protocol_text(conditions, fs_hz))
     world = WorldConfig(fs_hz=fs_hz, mechanisms=mechanisms_for(mechanism, magnitude))
     simulate_study(n_subjects, root / "a", seed=seed, protocol_path=str(proto), jobs=1, world=world)
-    export_study(root / "a", root / "b")
+    export_study(root / "a", root / "b", blind=True)
     import_study(root / "b", root / "c")
     shutil.rmtree(root / "a")  # the only place the truth was written
     shutil.rmtree(root / "b")

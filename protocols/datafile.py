@@ -24,15 +24,19 @@ import numpy as np
 
 from protocols import events as ev
 from protocols.engine import TrialFault
+from protocols.h5status import SuperblockError, clear_status_flags
+from protocols.names import UnsafeNameError, check_name
 from protocols.perturbation import PerturbationDesign
 from protocols.records import (
     CORE_CHANNELS,
     STATUS_ABORTED,
     STATUS_COMPLETE,
+    STATUS_DAMAGED,
     STATUS_INCOMPLETE,
     STATUS_SUPERSEDED,
     TrialRecord,
 )
+from protocols.writelock import LockedError, WriterLock, live_writer
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +138,22 @@ def _mb(n: int) -> str:
     return f"{n / 1e6:.1f} MB"
 
 
+def create_channel(group: h5py.Group, name: str, **kwargs) -> h5py.Dataset:
+    """Every dataset of a session file is made here: chunked, with HDF5's Fletcher-32 checksum
+    on each chunk, so a damaged chunk is an error when read, never silently wrong numbers.
+    (One place to add a compression filter; SWMR works with both.)"""
+    if "data" in kwargs and "chunks" not in kwargs:
+        n = len(kwargs["data"])
+        kwargs["chunks"] = (max(1, min(n, 65536)),)
+        kwargs.setdefault("maxshape", (None,))
+    return group.create_dataset(name, fletcher32=True, **kwargs)
+
+
+def creating_path(path: Path) -> Path:
+    """Where a new session file is built before it takes its name (never matches ``*.h5``)."""
+    return path.with_name(path.name + ".creating")
+
+
 class SessionWriter:
     """Writes the engine's events into one session file.
 
@@ -143,6 +163,22 @@ class SessionWriter:
     written stay, the trial is marked aborted, the file is closed; later events are ignored
     (:attr:`failure` says why). Before the disk is full (:data:`RESERVE_BYTES` left) it stops
     on its own, so that the file stays readable with every sample it was given.
+
+    Crash safety (``docs/data-format.md``, "After a crash"):
+    - The writer holds the session file's writer lock (:mod:`protocols.writelock`) from its
+      construction to :meth:`close`; a second writer is refused, naming this one.
+    - A new file is built as ``NAME.h5.creating`` and renamed into place once its session
+      attributes are written: a kill while creating leaves no half-made ``NAME.h5``.
+    - The file is open only while a trial runs (in SWMR mode, flushed every
+      ``flush_interval_s``) and for the moments it takes to write a trial's attributes; it is
+      closed during breaks and between subjects, so a kill there leaves a cleanly closed file.
+    - A kill while it is open leaves the superblock's "open for write" flag set; the next writer
+      or reader, holding the lock, clears it (as ``h5clear -s``): every flushed sample is kept.
+
+    ``lock``: True takes the lock now and holds it to the end of the session (or :meth:`close`);
+    a held :class:`WriterLock` is used and left to the caller to release (``run``, the GUI, which
+    hold it across several runs of the engine); False means the caller holds it for this file in
+    another process (simulate's workers).
     """
 
     def __init__(
@@ -154,6 +190,7 @@ class SessionWriter:
         chunk_samples: int = 8192,
         extra_attributes: dict | None = None,
         clock=time.monotonic,
+        lock: WriterLock | bool = True,
     ) -> None:
         self.path = Path(path)
         self.dtype = dtype
@@ -162,7 +199,14 @@ class SessionWriter:
         self.extra_attributes = extra_attributes or {}
         self.clock = clock
         self.f: h5py.File | None = None
-        self.recovered_from: Path | None = None
+        self.recovered_flags = 0  # the status flags a crashed writer had left, if any
+        self._own_lock: WriterLock | None = None
+        if lock is True:
+            self._own_lock = WriterLock(self.path)
+            try:
+                self._own_lock.acquire()
+            except LockedError as e:
+                raise DataFileError(str(e)) from None
         self._key: str | None = None
         self._buf: dict[str, list[np.ndarray]] = {}
         self._marks: list[tuple] = []
@@ -176,15 +220,20 @@ class SessionWriter:
     # -- file handling --------------------------------------------------------------------------
     def _open(self) -> h5py.File:
         if self.f is None:
+            if self._own_lock is not None and not self._own_lock.held:
+                try:
+                    self._own_lock.acquire()
+                except LockedError as e:
+                    raise DataFileError(str(e)) from None
             try:
-                self.f = h5py.File(self.path, "a", libver="latest")
+                self.f = h5py.File(self.path, "a", libver="latest", locking=False)
             except OSError as e:
                 if "already open for write" not in str(e) or not self.path.exists():
                     raise DataFileError(f"{self.path}: cannot open for writing: {e}") from None
-                # A writer died in SWMR mode (killed, power cut): the superblock still says
-                # "open for writing". Recover into a fresh copy; the original stays as a backup.
-                self.recovered_from = recover_crashed_file(self.path)
-                self.f = h5py.File(self.path, "a", libver="latest")
+                # A writer died with the file open (we hold the lock: it is not alive).
+                self.recovered_flags = _clear_crash_flags(self.path)
+                self.f = h5py.File(self.path, "a", libver="latest", locking=False)
+                self.f.attrs["recovered_utc"] = _now()
             st = os.stat(self.path)
             self._identity = (st.st_dev, st.st_ino)
         return self.f
@@ -196,10 +245,16 @@ class SessionWriter:
             self.f = None
         return self._open()
 
-    def close(self) -> None:
+    def _close_file(self) -> None:
         if self.f is not None:
             self.f.close()
             self.f = None
+
+    def close(self) -> None:
+        """Close the file and release the writer lock (when this writer took it)."""
+        self._close_file()
+        if self._own_lock is not None:
+            self._own_lock.release()
 
     # -- events -----------------------------------------------------------------------------------
     def __call__(self, event: object) -> None:
@@ -271,26 +326,40 @@ class SessionWriter:
             case ev.TrialSuperseded():
                 self._superseded(event)
             case ev.SessionEnded():
+                # The lock this writer took itself ends with the session (a later run of the
+                # engine takes it again); a lock its caller passed stays the caller's.
                 self.close()
 
+    def _session_attributes(self, e: ev.SessionStarted) -> dict:
+        return {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "software_version": software_version(),
+            "created_utc": _now(),
+            **e.attributes,
+            "protocol_toml": e.protocol_text,
+            "perturbation_design": e.design_json,
+            "units": UNITS,
+            "sign_conventions": SIGN_CONVENTIONS,
+            **self.extra_attributes,
+        }
+
     def _session_started(self, e: ev.SessionStarted) -> None:
-        f = self._reopen_plain()
+        self._close_file()
+        if not self.path.exists():
+            # Built under another name and renamed: the name appears complete or not at all.
+            tmp = creating_path(self.path)
+            tmp.unlink(missing_ok=True)
+            with h5py.File(tmp, "w", libver="latest") as f:
+                _set_attrs(f, self._session_attributes(e))
+                f.create_group("trials")
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+            os.replace(tmp, self.path)
+            return
+        f = self._open()
         if f.attrs.get("format") is None:
-            _set_attrs(
-                f,
-                {
-                    "format": FORMAT,
-                    "format_version": FORMAT_VERSION,
-                    "software_version": software_version(),
-                    "created_utc": _now(),
-                    **e.attributes,
-                    "protocol_toml": e.protocol_text,
-                    "perturbation_design": e.design_json,
-                    "units": UNITS,
-                    "sign_conventions": SIGN_CONVENTIONS,
-                    **self.extra_attributes,
-                },
-            )
+            _set_attrs(f, self._session_attributes(e))
         else:
             if str(f.attrs.get("subject")) != e.subject:
                 raise DataFileError(
@@ -303,7 +372,7 @@ class SessionWriter:
                 )
             f.attrs["resumed_utc"] = _now()
         f.require_group("trials")
-        f.flush()
+        self._close_file()
 
     def _trial_started(self, e: ev.TrialStarted) -> None:
         f = self._reopen_plain()
@@ -336,11 +405,11 @@ class SessionWriter:
         g = self.f["trials"][self._key]
         for name in channels:
             dt = "f8" if name in ("time_s", "host_time_s") else self.dtype
-            d = g.create_dataset(
-                name, shape=(0,), maxshape=(None,), dtype=dt, chunks=(self.chunk_samples,)
+            d = create_channel(
+                g, name, shape=(0,), maxshape=(None,), dtype=dt, chunks=(self.chunk_samples,)
             )
             d.attrs["units"] = UNITS.get(name, "")
-        g.create_dataset("marks", shape=(0,), maxshape=(None,), dtype=MARK_DTYPE, chunks=(64,))
+        create_channel(g, "marks", shape=(0,), maxshape=(None,), dtype=MARK_DTYPE, chunks=(64,))
         self.f.flush()
         self.f.swmr_mode = True
 
@@ -402,13 +471,15 @@ class SessionWriter:
         if not self._buf and self._marks:
             # A trial aborted before its first sample still records why.
             f = self._reopen_plain()
-            f["trials"][self._key].create_dataset(
+            create_channel(
+                f["trials"][self._key],
                 "marks",
                 data=np.array(self._marks, dtype=MARK_DTYPE),
                 maxshape=(None,),
                 chunks=(64,),
             )
             self._marks = []
+        self._open()
         self._write_out()
         self.f.flush()
         f = self._reopen_plain()
@@ -423,7 +494,7 @@ class SessionWriter:
                 "loop_stats": e.stats,
             },
         )
-        f.flush()
+        self._close_file()  # closed during the break: a kill there leaves a clean file
         self._key = None
         self._buf = {}
 
@@ -431,63 +502,82 @@ class SessionWriter:
         f = self._reopen_plain()
         g = f["trials"].get(e.key)
         if g is None:
+            self._close_file()
             raise DataFileError(f"{self.path}: no trial {e.key!r} to mark superseded")
         g.attrs["status"] = STATUS_SUPERSEDED
         g.attrs["superseded_reason"] = e.reason
         g.attrs["superseded_utc"] = _now()
-        f.flush()
+        if self._key is None:
+            self._close_file()
+        else:
+            f.flush()
 
 
-def recover_crashed_file(path: Path) -> Path:
-    """Make a session file left by a killed SWMR writer writable again, without changing a sample.
-
-    The file is read (read-only works), copied object by object into a new file, the copy is
-    checked sample for sample against the original, the original is kept beside it as
-    ``NAME.crashed-<UTC>.h5.bak``, and the copy takes the original's name. Returns the backup.
-    """
-    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
-    tmp = path.with_name(path.name + ".recovering")
-    backup = path.with_name(f"{path.stem}.crashed-{stamp}.h5.bak")
+def _clear_crash_flags(path: Path) -> int:
+    """Clear the "open for write" flags a killed writer left (the caller holds the lock)."""
     try:
-        with (
-            h5py.File(path, "r", libver="latest", swmr=True) as src,
-            h5py.File(tmp, "w", libver="latest") as dst,
-        ):
-            for k, v in src.attrs.items():
-                dst.attrs[k] = v
-            for name in src:
-                src.copy(src[name], dst, name)
-            dst.attrs["recovered_utc"] = _now()
-            dst.attrs["recovered_from"] = backup.name
-        with h5py.File(path, "r", libver="latest", swmr=True) as a, h5py.File(tmp, "r") as b:
-
-            def same(name, obj):
-                if isinstance(obj, h5py.Dataset) and not np.array_equal(obj[()], b[name][()]):
-                    raise DataFileError(f"{path}: recovery copy differs in {name}; original kept")
-
-            a.visititems(same)
+        return clear_status_flags(path)
+    except SuperblockError as e:
+        raise DataFileError(f"{path}: left open by a writer that died, and {e}") from None
     except OSError as e:
-        tmp.unlink(missing_ok=True)
         raise DataFileError(
-            f"{path}: left open by a writer that died, and cannot be recovered: {e}"
+            f"{path}: left open by a writer that died; cannot clear its 'open for write' flag "
+            f"({e.strerror or e}); run `h5clear -s {path}` as a user who may write it"
         ) from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    os.replace(path, backup)
-    os.replace(tmp, path)
-    return backup
 
 
 # -- reading ---------------------------------------------------------------------------------------
+OPEN_RETRY_S = 3.0  # how long a reader waits for a live writer between its set-up steps
+
+
 def _open_for_reading(path: Path) -> h5py.File:
+    """Open a session file read-only, whatever state a writer left it in.
+
+    A file with a live writer (its lock is held) is opened in SWMR mode; any other file in
+    plain read mode, whose end-of-file check makes a truncated file an error at once (SWMR
+    reading skips it and retries damaged metadata for minutes). A file whose writer died with
+    it open has its "open for write" flag cleared first (as ``h5clear -s``), under the lock.
+
+    HDF5's own file locking is off for readers and for the writer (``locking=False``): a
+    reader's shared lock would otherwise make the writer's next open fail mid-session. One
+    writer is ensured by the writer lock; a reader is kept out of the writer's plain-mode
+    moments by the superblock's "open for write" flag, which HDF5 checks on every open.
+    """
     if not path.exists():
         raise DataFileError(f"{path}: no such file")
-    try:
-        return h5py.File(path, "r", libver="latest", swmr=True)
-    except OSError as e:
-        msg = str(e)
-        hint = "truncated or damaged" if "truncat" in msg or "signature" in msg else "unreadable"
+    deadline = time.monotonic() + OPEN_RETRY_S
+    while True:
+        live = live_writer(path)
+        try:
+            if live is not None:
+                return h5py.File(path, "r", libver="latest", swmr=True, locking=False)
+            return h5py.File(path, "r", libver="latest", locking=False)
+        except OSError as e:
+            msg = str(e)
+        crash_flag = "already open for write" in msg or "not already open for SWMR" in msg
+        busy = crash_flag or "lock" in msg
+        if live is not None and busy and time.monotonic() < deadline:
+            time.sleep(0.05)  # the writer is between two set-up steps (plain-mode open)
+            continue
+        if live is None and crash_flag:
+            try:
+                with WriterLock(path, wait_s=OPEN_RETRY_S):
+                    _clear_crash_flags(path)
+            except LockedError as e:
+                if live_writer(path) is None:  # no writer: we may not create the lock file
+                    raise DataFileError(
+                        f"{path}: left open by a writer that died; {e}; run `h5clear -s "
+                        f"{path}` as a user who may write there"
+                    ) from None
+                # else a writer started meanwhile: open it as a live file
+            if time.monotonic() < deadline:
+                continue
+        if "truncat" in msg or "signature" in msg:
+            hint = "truncated or damaged"
+        elif busy:
+            hint = "held open by " + (f"a live writer ({live})" if live else "another process")
+        else:
+            hint = "damaged"
         raise DataFileError(f"{path}: not a readable HDF5 file ({hint}: {msg})") from None
 
 
@@ -523,11 +613,21 @@ def _json_attr(obj, key):
         return v
 
 
+_READ_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError)
+
+
 class SessionFile:
-    """A session file's metadata and trials, read-only."""
+    """A session file's metadata and trials, read-only.
+
+    The file as a whole (superblock, root attributes, the /trials index) must be readable, or
+    :class:`DataFileError` names the file. A trial whose attributes or data fail their checksums
+    is not fatal: it is listed in :attr:`damaged` (key → what is wrong) and :meth:`records`
+    returns it with status ``damaged``, so the analysis lists it as skipped.
+    """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        self.damaged: dict[str, str] = {}
         with _damage_is_an_error(self.path), _open_for_reading(self.path) as f:
             if _attr(f, "format") != FORMAT:
                 raise DataFileError(
@@ -537,9 +637,16 @@ class SessionFile:
             if "trials" not in f:
                 raise DataFileError(f"{self.path}: session file has no /trials group")
             self.trial_keys = sorted(f["trials"].keys())
-            self.trial_attrs = {
-                k: {a: _attr(g, a) for a in g.attrs} for k, g in f["trials"].items()
-            }
+            self.trial_attrs = {}
+            for k in self.trial_keys:
+                try:
+                    g = f["trials"][k]
+                    if not isinstance(g, h5py.Group):
+                        raise TypeError("not a group")
+                    self.trial_attrs[k] = {a: _attr(g, a) for a in g.attrs}
+                except _READ_ERRORS as e:
+                    self.damaged[k] = f"trial group unreadable ({type(e).__name__}: {e})"
+                    self.trial_attrs[k] = {}
 
     @property
     def subject(self) -> str:
@@ -548,7 +655,9 @@ class SessionFile:
     def attempts(self) -> dict[int, list[tuple[int, str]]]:
         """trial index → [(attempt, status)], for resuming a session."""
         out: dict[int, list[tuple[int, str]]] = {}
-        for a in self.trial_attrs.values():
+        for k, a in self.trial_attrs.items():
+            if k in self.damaged and "trial_index" not in a:
+                raise DataFileError(f"{self.path}:/trials/{k}: {self.damaged[k]}; cannot resume")
             out.setdefault(int(a["trial_index"]), []).append(
                 (int(a.get("attempt", 1)), str(a["status"]))
             )
@@ -561,17 +670,73 @@ class SessionFile:
 
         ``extra_channels``: which channels beyond the five interchange ones to read into
         ``record.extra`` (None: all of them; ``()``: none, the fastest for analysis).
+        A damaged trial comes back with status ``damaged`` (whatever ``statuses`` asks), empty
+        channels and ``abort_reason`` saying what is damaged.
         """
         out = []
         with _damage_is_an_error(self.path), _open_for_reading(self.path) as f:
             for key in self.trial_keys:
                 attrs = self.trial_attrs[key]
-                if statuses is not None and str(attrs.get("status")) not in statuses:
-                    continue
-                g = f["trials"][key]
-                out.append(_record_from_group(self.path, key, g, dict(attrs), extra_channels))
-        out.sort(key=lambda r: (r.trial_index or 0, int(r.attrs.get("attempt", 1))))
+                if key not in self.damaged:
+                    if statuses is not None and str(attrs.get("status")) not in statuses:
+                        continue
+                    try:
+                        g = f["trials"][key]
+                        out.append(
+                            _record_from_group(self.path, key, g, dict(attrs), extra_channels)
+                        )
+                        continue
+                    except _READ_ERRORS as e:
+                        self.damaged[key] = _what_is_damaged(e)
+                out.append(self._damaged_record(key))
+        out.sort(key=lambda r: (r.trial_index or 0, int(r.attrs.get("attempt", 1) or 1)))
         return out
+
+    def _damaged_record(self, key: str) -> TrialRecord:
+        a = self.trial_attrs.get(key, {})
+        empty = np.zeros(0)
+
+        def get(name, kind, default):
+            try:
+                return kind(a[name])
+            except (KeyError, TypeError, ValueError):
+                return default
+
+        return TrialRecord(
+            subject=self.subject,
+            condition=get("condition", str, key),
+            repetition=get("repetition", int, 0),
+            familiarization=get("familiarization", bool, False),
+            fs_hz=get("fs_hz", float, float("nan")),
+            time_s=empty,
+            perturbation_torque_Nm=empty,
+            driver_torque_Nm=empty,
+            wheel_angle_rad=empty,
+            grip_force_N=empty,
+            trial_index=get("trial_index", int, None),
+            status=STATUS_DAMAGED,
+            abort_reason=self.damaged[key],
+            attrs={**a, "status_recorded": a.get("status")},
+            source=f"{self.path}:/trials/{key}",
+        )
+
+
+def _what_is_damaged(e: BaseException) -> str:
+    if isinstance(e, DataFileError):
+        return str(e)
+    return f"damaged ({type(e).__name__}: {e})"
+
+
+def _read_dataset(where: str, name: str, d: h5py.Dataset) -> np.ndarray:
+    try:
+        return d[()]
+    except OSError as e:
+        what = (
+            "a chunk fails its Fletcher-32 checksum"
+            if d.fletcher32 and "filter" in str(e)
+            else f"unreadable ({e})"
+        )
+        raise DataFileError(f"{where}: dataset {name!r} is damaged: {what}") from None
 
 
 def _record_from_group(
@@ -589,11 +754,16 @@ def _record_from_group(
     ]
     if missing:
         raise DataFileError(f"{where}: missing attribute(s) {missing}")
+    for c in ("subject", "condition"):
+        try:
+            check_name(str(attrs[c]), f"{where}: attribute {c!r}")
+        except UnsafeNameError as e:
+            raise DataFileError(str(e)) from None
     data: dict[str, np.ndarray] = {}
     wanted = None if extra_channels is None else set(CORE_CHANNELS) | set(extra_channels)
     for name, d in g.items():
         if isinstance(d, h5py.Dataset) and name != "marks" and (wanted is None or name in wanted):
-            data[name] = np.asarray(d[()], dtype=float)
+            data[name] = np.asarray(_read_dataset(where, name, d), dtype=float)
     core = CORE_CHANNELS
     n = min((len(data[c]) for c in core if c in data), default=0)
     for c in core:
@@ -613,7 +783,7 @@ def _record_from_group(
             ) from None
     marks = []
     if "marks" in g:
-        for m in g["marks"][()]:
+        for m in _read_dataset(where, "marks", g["marks"]):
             marks.append(
                 {
                     "sample": int(m["sample"]),

@@ -12,6 +12,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from protocols.names import UnsafeNameError, check_name
 from protocols.perturbation import PerturbationSpec
 
 DEFAULT_PROTOCOL = "pronker2017.toml"
@@ -198,9 +199,10 @@ def _time_varying_condition(
         if "duration_s" not in seg:
             raise ProtocolError(f"{w}.duration_s: required")
         d = _typed(w, "duration_s", seg["duration_s"], float)
-        if not (math.isfinite(d) and d * loop_rate_hz >= 1.0):
+        if not (math.isfinite(d) and d * loop_rate_hz >= 1.0 and d <= MAX_TRIAL_S):
             raise ProtocolError(
-                f"{w}.duration_s: must be a finite number of at least one sample, got {d}"
+                f"{w}.duration_s: must be a finite number of at least one sample and at most "
+                f"{MAX_TRIAL_S:g} s, got {d}"
             )
         out.append(Segment(name, d))
     transition = raw.get("transition", "step")
@@ -230,11 +232,60 @@ def _time_varying_condition(
     )
 
 
+MAX_TRIAL_S = 3600.0  # one trial: run-in + periods + fade-out
+MAX_PERIOD_S = 600.0
+MAX_BREAK_S = 3600.0
+MAX_TRIALS_PER_CONDITION = 100
+MAX_BANDS = 1000
+
+
+def _finite_everywhere(doc: Any, file: str) -> None:
+    """Every number in the file is finite, except a boundary's ``inf`` (no lines): nan or inf
+    anywhere else is an error naming the field, before any of it is used."""
+
+    def where(path: list) -> str:
+        head, rest = path[0], path[1:]
+        if isinstance(head, str) and head in ("trial", "perturbation", "wheel") and rest:
+            out, rest = f"[{head}]", rest
+        elif head == "conditions" and rest and isinstance(rest[0], int):
+            out, rest = f"[[conditions]] #{rest[0] + 1}", rest[1:]
+        else:
+            out, rest = str(head), rest
+        for k in rest:
+            out += f"[{k + 1}]" if isinstance(k, int) else f".{k}"
+        return out
+
+    def walk(v: Any, path: list) -> None:
+        if isinstance(v, float) and not math.isfinite(v):
+            key = next((k for k in reversed(path) if isinstance(k, str)), "")
+            if key == "boundary_deg" and v == math.inf:
+                return
+            raise ProtocolError(f"{file}: {where(path)}: must be a finite number, got {v}")
+        if isinstance(v, dict):
+            for k, x in v.items():
+                walk(x, [*path, str(k)])
+        elif isinstance(v, list):
+            for i, x in enumerate(v):
+                walk(x, [*path, i])
+
+    walk(doc, [])
+
+
+def _at_most(where: str, value: float, limit: float, unit: str = "") -> None:
+    if value > limit:
+        raise ProtocolError(f"{where}: {value:g}{unit} is more than the {limit:g}{unit} allowed")
+
+
 def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
+    if "\x00" in text:
+        raise ProtocolError(f"{file}: a NUL character (not a text file)")
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ProtocolError(f"{file}: not valid TOML: {e}") from None
+    except RecursionError:
+        raise ProtocolError(f"{file}: not valid TOML: nested too deeply") from None
+    _finite_everywhere(doc, file)
     known_top = {
         "name",
         "description",
@@ -253,7 +304,10 @@ def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
     name = doc.get("name", Path(file).stem)
     if not isinstance(name, str) or not name:
         raise ProtocolError(f"{file}: name: expected a non-empty string, got {name!r}")
-    loop = _typed(file, "loop_rate_hz", doc.get("loop_rate_hz", 1000.0), float)
+    loop = doc.get("loop_rate_hz", 1000.0)
+    if isinstance(loop, bool) or not isinstance(loop, int | float):
+        raise ProtocolError(f"{file}: loop_rate_hz: expected a number, got {loop!r}")
+    loop = float(loop)
     if not 100.0 <= loop <= 10000.0:
         raise ProtocolError(f"{file}: loop_rate_hz: must be between 100 and 10000 Hz, got {loop}")
 
@@ -282,8 +336,25 @@ def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
         )
     if trial.repetitions < 1:
         raise ProtocolError(f"{w}.repetitions: must be ≥ 1, got {trial.repetitions}")
+    _at_most(f"{w}.repetitions", trial.repetitions, MAX_TRIALS_PER_CONDITION)
+    _at_most(f"{w}.familiarization_trials", trial.familiarization_trials, MAX_TRIALS_PER_CONDITION)
+    for key in ("break_between_trials_s", "break_between_conditions_s"):
+        _at_most(f"{w}.{key}", getattr(trial, key), MAX_BREAK_S, " s")
 
     pert = PerturbationSpec(**_section(doc, "perturbation", _PERT_KEYS, file))
+    wp = f"{file}: [perturbation]"
+    _at_most(f"{wp}.period_s", pert.period_s, MAX_PERIOD_S, " s")
+    _at_most(f"{wp}.n_bands", pert.n_bands, MAX_BANDS)
+    for key in ("first_bin", "gap_bins"):
+        _at_most(f"{wp}.{key}", getattr(pert, key), 100_000)
+    if not 0 <= pert.seed < 2**63:
+        raise ProtocolError(f"{wp}.seed: must be a whole number from 0 to 2**63 - 1")
+    trial_s = trial.run_in_s + trial.periods * pert.period_s + trial.fade_out_s
+    if trial_s > MAX_TRIAL_S:
+        raise ProtocolError(
+            f"{w}.periods: {trial.periods} period(s) of {pert.period_s:g} s make a trial of "
+            f"{trial_s:g} s, more than the {MAX_TRIAL_S:g} s allowed"
+        )
     try:
         pert.validate(where=f"{file}: [perturbation]")
     except ValueError as e:
@@ -317,6 +388,10 @@ def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
             raise ProtocolError(f"{where}: unknown field(s) {sorted(unknown)}")
         if "name" not in c or not isinstance(c["name"], str) or not c["name"].strip():
             raise ProtocolError(f"{where}.name: required, a non-empty string")
+        try:  # the name becomes part of HDF5 group and file names: no '/', '..', NUL
+            check_name(c["name"].strip(), f"{where}.name")
+        except UnsafeNameError as e:
+            raise ProtocolError(str(e)) from None
         instr = c.get("instructions", "")
         if not isinstance(instr, str):
             raise ProtocolError(f"{where}.instructions: expected a string")

@@ -29,6 +29,9 @@ STATUS_COMPLETE = "complete"
 STATUS_ABORTED = "aborted"
 STATUS_INCOMPLETE = "incomplete"  # still running, or the writer died mid-trial
 STATUS_SUPERSEDED = "superseded"  # a later attempt (redo) of the same trial replaced it
+# Set by readers only, never stored: the trial's data or attributes failed their checksums or
+# could not be read; ``abort_reason`` says what. The analysis lists it as skipped.
+STATUS_DAMAGED = "damaged"
 
 
 @dataclass

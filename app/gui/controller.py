@@ -22,8 +22,10 @@ from app.gui.rig import RigHandle, make_rig_loop
 from protocols import events as ev
 from protocols.datafile import DataFileError, SessionFile, SessionWriter, session_files
 from protocols.engine import IllegalTransition, SessionEngine, State
+from protocols.names import UnsafeNameError, check_name, inside
 from protocols.protocol import Protocol
 from protocols.session import SessionPlan, TrialSpec, build_plan, subject_id
+from protocols.writelock import LockedError, WriterLock
 
 #: Trial states in the trial list.
 PENDING, RUNNING, DONE, ABORTED = "pending", "running", "done", "aborted"
@@ -120,6 +122,7 @@ class SessionController:
         self.estop_latched = False
         self._worker: threading.Thread | None = None
         self._attempts: dict[int, int] = {}
+        self._lock: WriterLock | None = None
 
     # -- opening a session ---------------------------------------------------------------------
     def preview_order(self, subject_number: int) -> tuple[str, ...]:
@@ -157,10 +160,22 @@ class SessionController:
     def _open(self, plan: SessionPlan, path: Path, attempts: dict | None) -> None:
         if self.engine is not None:
             raise ControlError("a session is open already; close the window to start another")
-        rig = self.rig_factory(self.rig_path, plan.subject_number, self.protocol)
+        try:
+            check_name(plan.subject, f"{path}: subject")
+            self.data_root.mkdir(parents=True, exist_ok=True)
+            inside(self.data_root, path)
+            # The writer lock first: a session another process writes is refused, naming it.
+            lock = WriterLock(path).acquire()
+        except (UnsafeNameError, LockedError) as e:
+            raise ControlError(str(e)) from None
+        try:
+            rig = self.rig_factory(self.rig_path, plan.subject_number, self.protocol)
+        except BaseException:
+            lock.release()
+            raise
         engine = SessionEngine(plan, rig.loop, attempts=attempts, pause_between_trials=True)
-        self.data_root.mkdir(parents=True, exist_ok=True)
-        writer = SessionWriter(path, extra_attributes=dict(rig.extra_attributes))
+        writer = SessionWriter(path, extra_attributes=dict(rig.extra_attributes), lock=lock)
+        self._lock = lock
         engine.subscribe(writer)  # first: the file is written before anything is displayed
         for s in self.subscribers:
             engine.subscribe(s)
@@ -325,6 +340,9 @@ class SessionController:
             )
         if self.writer is not None:
             self.writer.close()
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
         if self.rig is not None:
             self.rig.close()
 

@@ -55,7 +55,7 @@ def hidden_study(root: Path, mech: m.Mechanisms, seed: int, n_subjects: int = 1)
     world = WorldConfig(fs_hz=200.0, mechanisms=mech)
     simulate_study(n_subjects, root / "a", seed=seed, protocol_path=str(root / "p.toml"),
                    jobs=1, world=world)  # fmt: skip
-    export_study(root / "a", root / "b")
+    export_study(root / "a", root / "b", blind=True)
     # The exported metadata carry trial-level keys only: nothing about the world.
     for js in (root / "b").glob("*.json"):
         meta = json.loads(js.read_text())
@@ -121,7 +121,7 @@ def test_an_effect_outside_the_candidates_is_unexplained(tmp_path_factory):
     (root / "p.toml").write_text(protocol())
     simulate_study(1, root / "a", seed=22, protocol_path=str(root / "p.toml"), jobs=1,
                    world=WorldConfig(fs_hz=200.0))  # fmt: skip
-    export_study(root / "a", root / "b")
+    export_study(root / "a", root / "b", blind=True)
     shutil.rmtree(root / "a")
     for p in (root / "b").glob("*.csv"):
         header = p.read_text().splitlines()[0].split(",")
