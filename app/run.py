@@ -41,6 +41,7 @@ def run_session(
     protocol_path: str | None = None,
     breaks: bool = True,
     say=print,
+    rig_check: str | None = None,
 ) -> State:
     if subject_number < 1:
         raise RunError(f"--subject must be ≥ 1, got {subject_number}")
@@ -51,6 +52,11 @@ def run_session(
             f"the protocol ({protocol.source_path}) runs its loop at {protocol.loop_rate_hz:g} Hz "
             f"but the rig ({rig.source}) at {rig.loop_rate_hz:g} Hz; make them agree"
         )
+    last_check = None
+    if rig_check is not None:
+        from analysis.rigcheck import load_rig_model, rig_check_record
+
+        last_check = rig_check_record(load_rig_model(rig_check))  # before the rig comes up
     plan = build_plan(protocol, subject_number)
     out = Path(out_dir)
     path = out / f"{plan.subject}.h5"
@@ -70,6 +76,8 @@ def run_session(
     extra = {"rig": rig.describe(), "realtime_tuning": loop.realtime}
     if loop.physiology is not None:
         extra.update({"simulated": True, "simulated_subject": loop.physiology})
+    if last_check is not None:
+        extra["rig_check"] = last_check
     writer = SessionWriter(path, extra_attributes=extra)
     engine.subscribe(writer)
     engine.subscribe(_reporter(say, len(plan.trials)))

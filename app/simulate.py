@@ -14,7 +14,7 @@ from hardware.sim.world import WorldConfig
 from protocols.datafile import DataFileError, SessionFile, SessionWriter
 from protocols.engine import SessionEngine, State
 from protocols.events import TrialEnded
-from protocols.protocol import Protocol, load_protocol
+from protocols.protocol import Protocol, VirtualWheel, load_protocol
 from protocols.session import build_plan, subject_id
 
 
@@ -31,6 +31,8 @@ class SimulationJob:
     realtime: bool
     world: WorldConfig
     resume: bool
+    wheel: VirtualWheel | None = None  # the wheel the loop renders (None: the protocol's)
+    wheel_used: dict | None = None  # which wheel, for the session file (see wheel_record)
 
 
 def session_path(out_dir: str | Path, subject: str) -> Path:
@@ -49,7 +51,7 @@ def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | Non
     plan = build_plan(protocol, job.subject_number)
     path = session_path(job.out_dir, plan.subject)
     attempts = SessionFile(path).attempts() if (job.resume and path.exists()) else None
-    rig = simulated_rig(physiology, job.world, protocol.wheel, PopulationSpread())
+    rig = simulated_rig(physiology, job.world, job.wheel or protocol.wheel, PopulationSpread())
     loop = rig.device_loop(realtime=True) if job.realtime else rig.batch_loop()
     engine = SessionEngine(plan, loop, attempts=attempts)
     writer = SessionWriter(
@@ -59,6 +61,7 @@ def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | Non
             "simulation_seed": job.seed,
             "simulated_subject": physiology.to_dict(),
             "world": job.world.to_dict(),
+            "wheel_used": job.wheel_used or wheel_record(protocol, None),
         },
     )
     engine.subscribe(writer)
@@ -112,6 +115,27 @@ def check_output(
                 )
 
 
+def wheel_record(protocol: Protocol, rig_model: dict | None) -> dict:
+    """Which wheel a simulation used: the protocol's nominal one, or a rig check's."""
+    if rig_model is None:
+        w = protocol.wheel
+        return {
+            "source": "nominal",
+            "detail": f"protocol {protocol.name}",
+            "inertia_kgm2": w.inertia_kgm2,
+            "damping_Nms_per_rad": w.damping_nms_per_rad,
+            "stiffness_Nm_per_rad": w.stiffness_nm_per_rad,
+        }
+    from analysis.rigcheck import PARAMS
+
+    return {
+        "source": "measured",
+        "detail": rig_model["_path"],
+        **{k: rig_model[k]["value"] for k in PARAMS},
+        "vaf_percent": rig_model.get("vaf_percent"),
+    }
+
+
 def simulate_study(
     n_subjects: int,
     out_dir: str | Path,
@@ -124,7 +148,10 @@ def simulate_study(
     jobs: int | None = None,
     world: WorldConfig | None = None,
     progress: Callable[[int, int, str], None] | None = None,
+    rig_model: str | Path | None = None,
 ) -> list[dict]:
+    """``rig_model``: a rig check's ``rig.json``: the simulated wheel is the measured one
+    (inertia, rendered damping and stiffness, friction, imbalance, actuator lag)."""
     if n_subjects < 1:
         raise SimulateError(f"--subjects must be ≥ 1, got {n_subjects}")
     protocol: Protocol = load_protocol(protocol_path)  # validates before anything is written
@@ -136,8 +163,15 @@ def simulate_study(
         for s in subjects:
             session_path(out, s).unlink(missing_ok=True)
     world = world or WorldConfig(fs_hz=protocol.loop_rate_hz)
+    wheel, measured = None, None
+    if rig_model is not None:
+        from analysis.rigcheck import load_rig_model, measured_world
+
+        measured = load_rig_model(rig_model)
+        world, wheel = measured_world(measured, world, protocol.wheel, protocol.loop_rate_hz)
+    used = wheel_record(protocol, measured)
     jobs_list = [
-        SimulationJob(i, str(out), seed, protocol_path, realtime, world, resume)
+        SimulationJob(i, str(out), seed, protocol_path, realtime, world, resume, wheel, used)
         for i in range(1, n_subjects + 1)
     ]
     total = n_subjects * len(build_plan(protocol, 1).trials)

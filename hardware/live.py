@@ -108,12 +108,11 @@ class RigDevices:
                 from hardware.glove.simulated import SimulatedGloveUnit
                 from hardware.sim.physiology import make_population
                 from hardware.sim.rig import simulated_rig
-                from hardware.sim.world import WorldConfig
 
                 sim = rig.simulation
                 phys = make_population(subject_number, seed=sim.seed)[subject_number - 1]
                 self.physiology = phys.to_dict()
-                sim_rig = simulated_rig(phys, WorldConfig(fs_hz=rig.loop_rate_hz))
+                sim_rig = simulated_rig(phys, sim.world_config(rig.loop_rate_hz))
                 self.plant = WorldPlant(sim_rig, sim.column_torque_offset_nm, seed=phys.seed)
                 # A channel of its own: two simulated rigs in one process must not cross-talk.
                 drive_cfg = replace(
