@@ -167,6 +167,10 @@ class Recording:
     loop_rate_hz: float | None = None  # a Steerlab recording: samples are the loop's cycles
     nominal: Nominal | None = None
     attrs: dict = field(default_factory=dict)
+    first_row: int | None = None  # a CSV: the file's row number of sample 0 (for messages)
+
+    def where(self, i: int) -> str:
+        return f"sample {i}" + (f" (row {i + self.first_row})" if self.first_row else "")
 
 
 def read_recording(path: str | Path, trial: str | None = None) -> Recording:
@@ -217,6 +221,7 @@ def _read_csv(p: Path) -> Recording:
         perturbation_Nm=data["perturbation_torque_Nm"],
         angle_rad=data["wheel_angle_rad"],
         velocity_rad_s=data.get("wheel_velocity_rad_s"),
+        first_row=2,
     )
 
 
@@ -299,19 +304,19 @@ def _plain(v):
 # -- checks, resampling and gaps ----------------------------------------------------------------
 @dataclass
 class Prepared:
+    """A checked recording: its raw samples, the gap-free segments that are fitted, and the
+    simulation grid (hold interval ``hold_s``) the model runs on."""
+
     source: str
-    dt: float  # grid step, s
-    substeps: int  # hold intervals per grid step
-    time_s: np.ndarray  # uniform grid
+    time_s: np.ndarray  # raw time stamps
     perturbation_Nm: np.ndarray
     angle_rad: np.ndarray
     velocity_rad_s: np.ndarray | None
-    segments: list[tuple[int, int]]  # [start, stop) on the grid, gap-free, fitted
+    segments: list[tuple[int, int]]  # [start, stop) raw sample indices, gap-free, fitted
+    dt: float  # the recording's (median) sample step, s
+    hold_s: float  # the model's hold interval, s
+    loop: bool  # True: a Steerlab loop recording, one hold per sample (zero-order hold)
     notes: list[str]
-
-    @property
-    def hold_s(self) -> float:
-        return self.dt / self.substeps
 
     @property
     def mask(self) -> np.ndarray:
@@ -319,6 +324,10 @@ class Prepared:
         for a, b in self.segments:
             m[a:b] = True
         return m
+
+    @property
+    def n_fitted(self) -> int:
+        return int(sum(b - a for a, b in self.segments))
 
 
 def _flat_extreme_fraction(x: np.ndarray) -> tuple[float, float]:
@@ -328,19 +337,16 @@ def _flat_extreme_fraction(x: np.ndarray) -> tuple[float, float]:
     span = float(np.max(x) - np.min(x))
     for ext in (np.max(x), np.min(x)):
         at = np.abs(x - ext) <= 1e-6 * max(abs(ext), span, 1e-12)
-        # runs of consecutive samples at the extreme
         d = np.diff(np.concatenate(([0], at.astype(np.int8), [0])))
-        starts, stops = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
-        lengths = stops - starts
-        n = int(np.sum(lengths[lengths >= CLIP_RUN]))
-        frac = n / len(x)
+        lengths = np.flatnonzero(d == -1) - np.flatnonzero(d == 1)
+        frac = int(np.sum(lengths[lengths >= CLIP_RUN])) / len(x)
         if frac > worst:
             worst, where = frac, float(ext)
     return worst, where
 
 
 def prepare(rec: Recording) -> Prepared:
-    """Check a recording and put it on a uniform grid with its gaps marked.
+    """Check a recording, find its gaps and choose the model's simulation grid.
 
     Raises :class:`RigCheckError` (naming the file) when the recording is too short, not
     excited, saturated or clipped, or has unusable time stamps.
@@ -359,24 +365,21 @@ def prepare(rec: Recording) -> Prepared:
             raise RigCheckError(f"{src}: {name} has {len(x)} samples but time_s has {n}")
         bad = np.flatnonzero(~np.isfinite(x))
         if len(bad):
-            raise RigCheckError(f"{src}: {name} is not finite at sample {bad[0]}")
+            raise RigCheckError(f"{src}: {name} is not finite at {rec.where(bad[0])}")
     if n < 10:
         raise RigCheckError(f"{src}: too short: {n} samples")
     if not np.all(np.isfinite(t)):
         bad = np.flatnonzero(~np.isfinite(t))[0]
-        raise RigCheckError(f"{src}: time_s is not finite at sample {bad}")
+        raise RigCheckError(f"{src}: time_s is not finite at {rec.where(bad)}")
     dts = np.diff(t)
     back = np.flatnonzero(dts <= 0)
     if len(back):
         raise RigCheckError(
-            f"{src}: time_s does not increase at sample {back[0] + 1} "
+            f"{src}: time_s does not increase at {rec.where(back[0] + 1)} "
             f"({t[back[0]]:.6g} s then {t[back[0] + 1]:.6g} s); cannot order the samples"
         )
     notes: list[str] = []
-    if rec.loop_rate_hz:
-        dt = 1.0 / rec.loop_rate_hz
-    else:
-        dt = float(np.median(dts))
+    dt = 1.0 / rec.loop_rate_hz if rec.loop_rate_hz else float(np.median(dts))
     if 1.0 / dt < MIN_RATE_HZ:
         raise RigCheckError(
             f"{src}: sampled at {1 / dt:.3g} Hz (median step {dt * 1e3:.3g} ms); "
@@ -384,62 +387,37 @@ def prepare(rec: Recording) -> Prepared:
         )
     gap_s = GAP_FACTOR * dt
     gaps = np.flatnonzero(dts > gap_s)
-    uniform = np.max(np.abs(dts - dt)) <= 1e-6 * dt
-    if uniform:
-        grid = t.copy()
-        tp, th = rec.perturbation_Nm.astype(float), rec.angle_rad.astype(float)
-        om = None if rec.velocity_rad_s is None else rec.velocity_rad_s.astype(float)
-        valid = np.ones(n, bool)
-    else:
+    uniform = bool(np.max(np.abs(dts - dt)) <= 1e-6 * dt)
+    loop = bool(rec.loop_rate_hz) and uniform
+    if not uniform:
         jit = np.percentile(dts, [1, 99]) * 1e3
-        grid = t[0] + dt * np.arange(int(np.floor((t[-1] - t[0]) / dt)) + 1)
-        tp = np.interp(grid, t, rec.perturbation_Nm)
-        th = np.interp(grid, t, rec.angle_rad)
-        om = None if rec.velocity_rad_s is None else np.interp(grid, t, rec.velocity_rad_s)
-        # A grid point is usable when the raw interval around it is not a gap.
-        j = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, n - 2)
-        valid = dts[j] <= gap_s
         notes.append(
-            f"time stamps not uniform (steps {jit[0]:.2f}–{jit[1]:.2f} ms, 1st–99th percentile): "
-            f"resampled on a uniform {dt * 1e3:.3g} ms grid by linear interpolation"
+            f"time stamps not uniform (steps {jit[0]:.2f}–{jit[1]:.2f} ms, 1st–99th percentile, "
+            f"median {dt * 1e3:.3g} ms): the torque is resampled on the model's uniform grid, "
+            "the model compared with the angle at its own time stamps"
         )
     if len(gaps):
-        longest = float(np.max(dts[gaps]))
         notes.append(
-            f"{len(gaps)} gap(s) in the time stamps (longer than {gap_s * 1e3:.3g} ms; the "
-            f"longest {longest * 1e3:.3g} ms): fitted across gap-free segments only"
+            f"{len(gaps)} gap(s) in the time stamps (steps longer than {gap_s * 1e3:.3g} ms; the "
+            f"longest {np.max(dts[gaps]) * 1e3:.3g} ms): fitted across gap-free segments only, "
+            "each with its own initial state"
         )
-        if uniform:
-            valid = np.ones(n, bool)
-    # Segments: runs of valid grid points, broken at gaps.
-    seg_break = np.zeros(len(grid), bool)
-    if uniform and len(gaps):
-        seg_break[gaps + 1] = True
-    segs: list[tuple[int, int]] = []
-    start = None
-    for i in range(len(grid)):
-        if not valid[i] or (seg_break[i] and start is not None):
-            if start is not None:
-                segs.append((start, i))
-            start = i if valid[i] else None
-        elif start is None:
-            start = i
-    if start is not None:
-        segs.append((start, len(grid)))
-    min_n = int(math.ceil(MIN_SEGMENT_S / dt))
-    short = [s for s in segs if s[1] - s[0] < min_n]
-    segs = [s for s in segs if s[1] - s[0] >= min_n]
+    edges = np.concatenate(([0], gaps + 1, [n]))
+    segs = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    short = [s for s in segs if t[s[1] - 1] - t[s[0]] < MIN_SEGMENT_S]
+    segs = [s for s in segs if t[s[1] - 1] - t[s[0]] >= MIN_SEGMENT_S]
     if short:
         notes.append(f"{len(short)} gap-free stretch(es) shorter than {MIN_SEGMENT_S:g} s left out")
-    total = sum(b - a for a, b in segs) * dt
+    total = sum(t[b - 1] - t[a] for a, b in segs)
     if total < MIN_TOTAL_S:
         raise RigCheckError(
             f"{src}: too short: {total:.2f} s of gap-free data (duration {t[-1] - t[0]:.2f} s, "
             f"{len(gaps)} gap(s)); the rig check needs ≥ {MIN_TOTAL_S:g} s"
         )
-    m = np.zeros(len(grid), bool)
+    m = np.zeros(n, bool)
     for a, b in segs:
         m[a:b] = True
+    tp, th = np.asarray(rec.perturbation_Nm, float), np.asarray(rec.angle_rad, float)
     sd_tp = float(np.std(tp[m]))
     if sd_tp < 0.01:
         raise RigCheckError(
@@ -452,7 +430,7 @@ def prepare(rec: Recording) -> Prepared:
             f"{src}: no excitation: wheel_angle_rad varies by {sd_th:.3g} rad (SD): the wheel did "
             "not move (locked, or the motor disabled?)"
         )
-    frac, at = _flat_extreme_fraction(np.asarray(rec.perturbation_Nm, float))
+    frac, at = _flat_extreme_fraction(tp)
     if frac >= CLIP_FRACTION:
         raise RigCheckError(
             f"{src}: perturbation_torque_Nm saturated: flat at {at:+.4g} N·m for {frac:.1%} of "
@@ -465,95 +443,132 @@ def prepare(rec: Recording) -> Prepared:
                 f"{src}: motor_command_Nm saturated at the rig's limit ±{rec.max_torque_nm:g} N·m "
                 f"for {np.mean(sat):.1%} of the samples; lower the perturbation"
             )
-    frac, at = _flat_extreme_fraction(np.asarray(rec.angle_rad, float))
+    frac, at = _flat_extreme_fraction(th)
     if frac >= CLIP_FRACTION:
         raise RigCheckError(
             f"{src}: wheel_angle_rad clipped: flat at {at:+.4g} rad for {frac:.1%} of the "
             "samples (an end stop or the sensor's range); the fit cannot use it"
         )
-    substeps = 1 if rec.loop_rate_hz else max(1, int(math.ceil(dt / MAX_HOLD_S - 1e-9)))
-    return Prepared(src, dt, substeps, grid, tp, th, om, segs, notes)
+    hold = dt if loop else dt / max(1, math.ceil(dt / MAX_HOLD_S - 1e-9))
+    om = None if rec.velocity_rad_s is None else np.asarray(rec.velocity_rad_s, float)
+    return Prepared(src, t, tp, th, om, segs, dt, hold, loop, notes)
 
 
 # -- the model ------------------------------------------------------------------------------
 @njit(cache=True)
-def _simulate(tp_hold, n, m, th0, om0, I, b, k, fc, eps, g, alpha, h, out):
-    """Angle at each of n grid points; tp_hold holds m inputs per grid step (n·m)."""
+def _simulate(u, th0, om0, I, b, k, fc, eps, g, alpha, h, out):
+    """θ at the start of each hold interval (len(u) + 1 values into ``out``): the command is
+    computed from the state at the interval's start, passed through the discrete lag and held;
+    the wheel moves exactly under the held torques."""
     th, om = th0, om0
-    T = tp_hold[0] - b * om - k * th
-    for i in range(n):
-        out[i] = th
-        for j in range(m):
-            cmd = tp_hold[i * m + j] - b * om - k * th
-            T += alpha * (cmd - T)
-            acc = (T - fc * np.tanh(om / eps) - g * np.sin(th)) / I
-            th += om * h + 0.5 * acc * h * h
-            om += acc * h
+    T = u[0] - b * om - k * th
+    for j in range(len(u)):
+        out[j] = th
+        cmd = u[j] - b * om - k * th
+        T += alpha * (cmd - T)
+        acc = (T - fc * np.tanh(om / eps) - g * np.sin(th)) / I
+        th += om * h + 0.5 * acc * h * h
+        om += acc * h
+    out[len(u)] = th
 
 
-def _hold_inputs(tp: np.ndarray, m: int) -> np.ndarray:
-    """The input held over each of m hold intervals per grid step: for m = 1 the sample itself
-    (the loop's zero-order hold); else linear interpolation at each interval's middle."""
-    if m == 1:
-        return np.ascontiguousarray(tp, dtype=float)
-    frac = (np.arange(m) + 0.5) / m
-    nxt = np.append(tp[1:], tp[-1])
-    return np.ascontiguousarray((tp[:, None] + (nxt - tp)[:, None] * frac[None, :]).ravel())
+def lag_equivalent(tau_d: float, h: float) -> tuple[float, float]:
+    """The model's discrete lag (time constant ``tau_d``, hold ``h``) as a continuous-time
+    lag: h/(e^{h/τ} − 1) + h/2 (the lag's own part plus the hold's half interval); and its
+    derivative with respect to τ."""
+    if tau_d <= 0:
+        return 0.5 * h, 0.0
+    x = h / tau_d
+    if x > 50:
+        return 0.5 * h, 0.0
+    em = math.expm1(x)
+    return h / em + 0.5 * h, x * x * (em + 1.0) / (em * em)
+
+
+def lag_time_constant(delay_s: float, h: float) -> float:
+    """The inverse of :func:`lag_equivalent`: the discrete lag at hold ``h`` whose continuous
+    equivalent is ``delay_s`` (0 when ``delay_s`` ≤ h/2: the hold alone is that slow)."""
+    if delay_s <= 0.5 * h:
+        return 0.0
+    return h / math.log1p(h / (delay_s - 0.5 * h))
+
+
+@dataclass
+class _Segment:
+    u: np.ndarray  # the torque held over each hold interval
+    idx: np.ndarray  # for each raw sample: the hold interval it falls in
+    w: np.ndarray  # ... and how far into it (0..1)
+    y: np.ndarray  # measured angle at the raw samples
 
 
 @dataclass
 class _Problem:
     prep: Prepared
     eps: float
-    inputs: list[np.ndarray]
-    meas: list[np.ndarray]
+    segs: list[_Segment]
 
     @classmethod
     def build(cls, prep: Prepared, eps: float) -> _Problem:
-        ins, meas = [], []
+        h = prep.hold_s
+        out = []
         for a, b in prep.segments:
-            ins.append(_hold_inputs(prep.perturbation_Nm[a:b], prep.substeps))
-            meas.append(prep.angle_rad[a:b])
-        return cls(prep, eps, ins, meas)
+            t = prep.time_s[a:b] - prep.time_s[a]
+            tp = prep.perturbation_Nm[a:b]
+            if prep.loop:
+                u = np.ascontiguousarray(tp[:-1])  # the loop's own zero-order hold
+                idx, w = np.arange(len(t)), np.zeros(len(t))
+            else:
+                n_h = int(math.ceil(t[-1] / h - 1e-9))
+                # Sampled at each interval's start, like the feedback: one command, held.
+                u = np.interp(np.arange(n_h) * h, t, tp)
+                pos = t / h
+                idx = np.minimum(np.floor(pos).astype(int), n_h - 1)
+                w = pos - idx
+            out.append(_Segment(np.ascontiguousarray(u), idx, w, prep.angle_rad[a:b]))
+        return cls(prep, eps, out)
 
     def simulate(self, x: np.ndarray) -> list[np.ndarray]:
+        """The model's angle at every raw sample of every segment."""
         I, b, k, fc, g, tau = x[:6]
         h = self.prep.hold_s
         alpha = 1.0 if tau <= 0 else -math.expm1(-h / tau)
-        outs = []
-        for s, (u, y) in enumerate(zip(self.inputs, self.meas, strict=True)):
-            o = np.empty(len(y))
-            _simulate(u, len(y), self.prep.substeps, x[6 + 2 * s], x[7 + 2 * s],
-                      I, b, k, fc, self.eps, g, alpha, h, o)  # fmt: skip
-            outs.append(o)
-        return outs
+        res = []
+        for s, seg in enumerate(self.segs):
+            th = np.empty(len(seg.u) + 1)
+            _simulate(seg.u, x[6 + 2 * s], x[7 + 2 * s], I, b, k, fc, self.eps, g, alpha, h, th)
+            idx1 = np.minimum(seg.idx + 1, len(th) - 1)
+            res.append(th[seg.idx] * (1.0 - seg.w) + th[idx1] * seg.w)
+        return res
 
     def residual(self, x: np.ndarray) -> np.ndarray:
-        r = np.concatenate([y - o for y, o in zip(self.meas, self.simulate(x), strict=True)])
-        if not np.all(np.isfinite(r)):
+        sims = self.simulate(x)
+        r = np.concatenate([seg.y - o for seg, o in zip(self.segs, sims, strict=True)])
+        if not np.all(np.isfinite(r)) or np.max(np.abs(r)) > 1e3:
             return np.full(len(r), 1e3)
         return r
 
 
 def _equation_error_start(prep: Prepared, eps: float, nominal: Nominal) -> np.ndarray:
-    """I, b, k, F_c from T_p = I θ'' + b θ' + k θ + F_c tanh(θ'/ε) on smoothed derivatives."""
-    win = max(7, int(round(0.05 / prep.dt)) | 1)
+    """I, b, k, F_c from T_p = I θ'' + b θ' + k θ + F_c tanh(θ'/ε), on derivatives of the angle
+    smoothed over 50 ms (a starting point for the output-error fit)."""
     rows, rhs = [], []
     for a, b in prep.segments:
-        th = prep.angle_rad[a:b]
-        if len(th) <= win:
+        t, th = prep.time_s[a:b], prep.angle_rad[a:b]
+        grid = np.arange(t[0], t[-1], prep.dt)
+        win = max(7, int(round(0.05 / prep.dt)) | 1)
+        if len(grid) <= 3 * win:
             continue
-        d1 = savgol_filter(th, win, 3, deriv=1, delta=prep.dt)
-        d2 = savgol_filter(th, win, 3, deriv=2, delta=prep.dt)
-        cut = slice(win, len(th) - win)
-        rows.append(np.column_stack([d2, d1, th, np.tanh(d1 / eps)])[cut])
-        rhs.append(prep.perturbation_Nm[a:b][cut])
+        thg = np.interp(grid, t, th)
+        d1 = savgol_filter(thg, win, 3, deriv=1, delta=prep.dt)
+        d2 = savgol_filter(thg, win, 3, deriv=2, delta=prep.dt)
+        cut = slice(win, len(grid) - win)
+        rows.append(np.column_stack([d2, d1, thg, np.tanh(d1 / eps)])[cut])
+        rhs.append(np.interp(grid, t, prep.perturbation_Nm[a:b])[cut])
     x = np.array([nominal.inertia_kgm2, nominal.damping_Nms_per_rad,
                   nominal.stiffness_Nm_per_rad, 0.0])  # fmt: skip
     if rows:
-        A, y = np.vstack(rows), np.concatenate(rhs)
-        sol, *_ = np.linalg.lstsq(A, y, rcond=None)
-        if np.all(np.isfinite(sol)) and sol[0] > 0 and sol[2] > -sol[0]:
+        sol, *_ = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)
+        if np.all(np.isfinite(sol)) and sol[0] > 0 and sol[2] > 0:
             x = sol
     return x
 
@@ -600,7 +615,7 @@ class RigFit:
     sem_fisher: dict[str, float]
     vaf_percent: float
     prep: Prepared
-    model_angle: np.ndarray  # on the grid; NaN outside the fitted segments
+    model_angle: np.ndarray  # at the raw samples; NaN outside the fitted segments
     eps: float
     hold_s: float
     hac_lags: int
@@ -608,6 +623,7 @@ class RigFit:
     initial_states: list[tuple[float, float]]
     nominal: Nominal
     cost_evals: int
+    lag_time_constant_s: float  # the model's discrete lag τ at hold_s
 
     def to_dict(self) -> dict:
         d = {p: {"value": self.values[p], "sem": self.sem[p]} for p in PARAMS}
@@ -622,20 +638,21 @@ class RigFit:
                     "equation": "I·ω' = lag_τ(T_p − b·ω − k·θ) − F_c·tanh(ω/ε) − G·sin θ",
                     "friction_eps_rad_s": self.eps,
                     "hold_s": self.hold_s,
-                    "delay_s_is": "τ + hold_s/2: the actuator's first-order lag plus half a "
-                    "hold interval (continuous-time equivalent lag)",
+                    "lag_time_constant_s": self.lag_time_constant_s,
+                    "delay_s_is": "the continuous-time equivalent of the actuator's lag, "
+                    "including the hold's half interval: h/(exp(h/τ) − 1) + h/2",
                 },
-                "sem_method": f"Jacobian sandwich with Newey–West residual autocovariance "
+                "sem_method": "Jacobian sandwich with Newey–West residual autocovariance "
                 f"({self.hac_lags} lags)",
                 "sem_fisher": self.sem_fisher,
                 "at_bound": self.at_bound,
                 "fit": {
-                    "samples": int(sum(b - a for a, b in self.prep.segments)),
-                    "segments": [
+                    "samples": self.prep.n_fitted,
+                    "segments_s": [
                         [float(self.prep.time_s[a]), float(self.prep.time_s[b - 1])]
                         for a, b in self.prep.segments
                     ],
-                    "grid_step_s": self.prep.dt,
+                    "sample_step_s": self.prep.dt,
                     "notes": self.prep.notes,
                 },
             }
@@ -651,17 +668,18 @@ def fit_rig(prep: Prepared, *, nominal: Nominal | None = None, eps: float = EPS_
     x0 = [I0, b0, k0, max(fc0, 0.0), 0.0, 2e-3]
     lo = [1e-4, -50.0, -50.0, -20.0, -100.0, 0.0]
     hi = [100.0, 500.0, 5000.0, 20.0, 100.0, 0.2]
-    for (a, _b), y in zip(prep.segments, prob.meas, strict=True):
+    for (a, b), seg in zip(prep.segments, prob.segs, strict=True):
+        y, t = seg.y, prep.time_s[a:b]
         if prep.velocity_rad_s is not None:
             w0 = float(prep.velocity_rad_s[a])
         else:
-            w0 = float((y[min(5, len(y) - 1)] - y[0]) / (min(5, len(y) - 1) * prep.dt))
+            j = min(5, len(y) - 1)
+            w0 = float((y[j] - y[0]) / (t[j] - t[0]))
         x0 += [float(y[0]), w0]
         lo += [-20.0, -200.0]
         hi += [20.0, 200.0]
     x0, lo, hi = np.array(x0), np.array(lo), np.array(hi)
-    x0 = np.clip(x0, lo + 1e-12, hi - 1e-12)
-    x0[5] = max(x0[5], 1e-4)
+    x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
     res = least_squares(
         prob.residual, x0, bounds=(lo, hi), x_scale="jac", method="trf",
         xtol=1e-12, ftol=1e-12, gtol=1e-10, max_nfev=400,
@@ -669,8 +687,7 @@ def fit_rig(prep: Prepared, *, nominal: Nominal | None = None, eps: float = EPS_
     x = res.x
     r = prob.residual(x)
     J = _jacobian(prob.residual, x, lo, hi)
-    npar = len(x)
-    s2 = float(r @ r) / max(1, len(r) - npar)
+    s2 = float(r @ r) / max(1, len(r) - len(x))
     try:
         cov_f = s2 * np.linalg.inv(J.T @ J)
         cov_h, L = _newey_west(J, r)
@@ -679,24 +696,26 @@ def fit_rig(prep: Prepared, *, nominal: Nominal | None = None, eps: float = EPS_
             f"{prep.source}: the rig model is not identifiable from this recording (singular "
             "Jacobian): is the wheel excited over a range of angles and speeds?"
         ) from None
-    sem_f = np.sqrt(np.maximum(np.diag(cov_f), 0.0))
-    sem_h = np.sqrt(np.maximum(np.diag(cov_h), 0.0))
-    half = 0.5 * prep.hold_s
-    vals = list(x[:5]) + [x[5] + half]
+    sem_f = np.sqrt(np.maximum(np.diag(cov_f), 0.0))[:6]
+    sem_h = np.sqrt(np.maximum(np.diag(cov_h), 0.0))[:6]
+    delay, ddelay = lag_equivalent(float(x[5]), prep.hold_s)
+    vals = [*x[:5], delay]
+    sem_h[5] *= ddelay
+    sem_f[5] *= ddelay
     values = {p: float(v) for p, v in zip(PARAMS, vals, strict=True)}
-    sem = {p: float(v) for p, v in zip(PARAMS, sem_h[:6], strict=True)}
-    sem_fisher = {p: float(v) for p, v in zip(PARAMS, sem_f[:6], strict=True)}
+    sem = {p: float(v) for p, v in zip(PARAMS, sem_h, strict=True)}
+    sem_fisher = {p: float(v) for p, v in zip(PARAMS, sem_f, strict=True)}
     at_bound = [
         PARAMS[i] for i in range(6) if res.active_mask[i] != 0 or x[i] <= lo[i] or x[i] >= hi[i]
     ]
-    y = np.concatenate(prob.meas)
+    y = np.concatenate([seg.y for seg in prob.segs])
     vaf = float(100.0 * (1.0 - np.var(r) / np.var(y)))
     model = np.full(len(prep.time_s), np.nan)
     for (a, b), o in zip(prep.segments, prob.simulate(x), strict=True):
         model[a:b] = o
     inits = [(float(x[6 + 2 * s]), float(x[7 + 2 * s])) for s in range(len(prep.segments))]
     return RigFit(prep.source, values, sem, sem_fisher, vaf, prep, model, eps, prep.hold_s,
-                  L, at_bound, inits, nominal, int(res.nfev))  # fmt: skip
+                  L, at_bound, inits, nominal, int(res.nfev), float(x[5]))  # fmt: skip
 
 
 # -- verdict -------------------------------------------------------------------------------------
@@ -787,7 +806,8 @@ text-align:left}}.ok{{color:#070}}.bad{{color:#b00;font-weight:bold}}</style></h
 Nominal wheel: {html.escape(fit.nominal.source)}. Tolerances: {html.escape(tol_source)}.</p>
 <p>Model: I·ω' = lag<sub>τ</sub>(T<sub>p</sub> − b·ω − k·θ) − F<sub>c</sub>·tanh(ω/ε) − m·g·r·sin θ,
 ε = {fit.eps:g} rad/s; values ± SEM (Jacobian sandwich, Newey–West, {fit.hac_lags} lags).
-The lag is reported as τ + h/2 (h = {fit.hold_s * 1e3:.3g} ms hold).</p>
+The lag is reported as its continuous-time equivalent, h/(e<sup>h/τ</sup> − 1) + h/2 (hold h =
+{fit.hold_s * 1e3:.3g} ms).</p>
 <table><tr><th>quantity</th><th>measured</th><th>nominal</th><th>tolerance</th><th>verdict</th></tr>
 {"".join(rows)}</table>
 <p>At a bound of the fit (SEM not meaningful): {", ".join(fit.at_bound) or "none"}.</p>
@@ -885,8 +905,8 @@ def load_rig_model(path: str | Path) -> dict:
 
 def measured_world(rig_model: dict, world, wheel, fs_hz: float):
     """(WorldConfig, VirtualWheel) for the simulator with the measured wheel: inertia, rendered
-    damping and stiffness, friction, imbalance and the actuator lag (less the loop's own half
-    period, which the simulated loop adds by itself)."""
+    damping and stiffness, friction, imbalance, and the actuator lag as the simulated loop's
+    discrete lag with the same continuous-time equivalent (:func:`lag_time_constant`)."""
     from hardware.sim.mechanisms import ActuatorLag, CoulombFriction, WheelImbalance
 
     v = {k: float(rig_model[k]["value"]) for k in PARAMS}
@@ -895,7 +915,7 @@ def measured_world(rig_model: dict, world, wheel, fs_hz: float):
         world.mechanisms,
         coulomb_friction=CoulombFriction(v["coulomb_Nm"], eps),
         wheel_imbalance=WheelImbalance(v["gravity_Nm"]),
-        actuator_lag=ActuatorLag(max(0.0, v["delay_s"] - 0.5 / fs_hz)),
+        actuator_lag=ActuatorLag(lag_time_constant(v["delay_s"], 1.0 / fs_hz)),
     )
     new_world = replace(world, wheel_inertia_kgm2=v["inertia_kgm2"], mechanisms=mech)
     new_wheel = replace(
