@@ -611,8 +611,8 @@ def _newey_west(J: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, int]:
 class RigFit:
     source: str
     values: dict[str, float]
-    sem: dict[str, float]
-    sem_fisher: dict[str, float]
+    sem: dict[str, float | None]  # None: the fit left this parameter on a bound
+    sem_fisher: dict[str, float | None]
     vaf_percent: float
     prep: Prepared
     model_angle: np.ndarray  # at the raw samples; NaN outside the fitted segments
@@ -687,27 +687,41 @@ def fit_rig(prep: Prepared, *, nominal: Nominal | None = None, eps: float = EPS_
     x = res.x
     r = prob.residual(x)
     J = _jacobian(prob.residual, x, lo, hi)
-    s2 = float(r @ r) / max(1, len(r) - len(x))
+    # A parameter the fit left on a bound is held there: the SEMs are those of the others,
+    # given it (its own SEM is not defined: None in rig.json).
+    held = (res.active_mask != 0) | (x <= lo) | (x >= hi)
+    if x[5] < prep.hold_s / 40:  # a lag this short is no lag at this hold: α = 1 to 1e-17
+        x[5], held[5] = 0.0, True
+    scaled = np.linalg.norm(J, axis=0) * np.maximum(np.abs(x), 1e-3)
+    held |= scaled <= 1e-9 * np.max(scaled)  # no effect on the residual at all
+    free = np.flatnonzero(~held)
+    Jf = J[:, free]
+    s2 = float(r @ r) / max(1, len(r) - len(free))
     try:
-        cov_f = s2 * np.linalg.inv(J.T @ J)
-        cov_h, L = _newey_west(J, r)
+        cov_f = s2 * np.linalg.inv(Jf.T @ Jf)
+        cov_h, L = _newey_west(Jf, r)
     except np.linalg.LinAlgError:
         raise RigCheckError(
             f"{prep.source}: the rig model is not identifiable from this recording (singular "
             "Jacobian): is the wheel excited over a range of angles and speeds?"
         ) from None
-    sem_f = np.sqrt(np.maximum(np.diag(cov_f), 0.0))[:6]
-    sem_h = np.sqrt(np.maximum(np.diag(cov_h), 0.0))[:6]
+    sem_f = np.full(len(x), np.nan)
+    sem_h = np.full(len(x), np.nan)
+    sem_f[free] = np.sqrt(np.maximum(np.diag(cov_f), 0.0))
+    sem_h[free] = np.sqrt(np.maximum(np.diag(cov_h), 0.0))
+    sem_f, sem_h = sem_f[:6], sem_h[:6]
     delay, ddelay = lag_equivalent(float(x[5]), prep.hold_s)
     vals = [*x[:5], delay]
     sem_h[5] *= ddelay
     sem_f[5] *= ddelay
+
+    def clean(v):
+        return None if not np.isfinite(v) else float(v)
+
     values = {p: float(v) for p, v in zip(PARAMS, vals, strict=True)}
-    sem = {p: float(v) for p, v in zip(PARAMS, sem_h, strict=True)}
-    sem_fisher = {p: float(v) for p, v in zip(PARAMS, sem_f, strict=True)}
-    at_bound = [
-        PARAMS[i] for i in range(6) if res.active_mask[i] != 0 or x[i] <= lo[i] or x[i] >= hi[i]
-    ]
+    sem = {p: clean(v) for p, v in zip(PARAMS, sem_h, strict=True)}
+    sem_fisher = {p: clean(v) for p, v in zip(PARAMS, sem_f, strict=True)}
+    at_bound = [PARAMS[i] for i in range(6) if held[i]]
     y = np.concatenate([seg.y for seg in prob.segs])
     vaf = float(100.0 * (1.0 - np.var(r) / np.var(y)))
     model = np.full(len(prep.time_s), np.nan)
@@ -930,7 +944,8 @@ def measured_world(rig_model: dict, world, wheel, fs_hz: float):
 def summary(fit: RigFit, checks: list[Check]) -> str:
     lines = []
     for p in PARAMS:
-        lines.append(f"  {LABELS[p]:<22} {fit.values[p]:>10.4g} ± {fit.sem[p]:.2g} {UNITS[p]}")
+        sem = "at a bound" if fit.sem[p] is None else f"{fit.sem[p]:.2g}"
+        lines.append(f"  {LABELS[p]:<22} {fit.values[p]:>10.4g} ± {sem} {UNITS[p]}")
     lines.append(f"  {'VAF':<22} {fit.vaf_percent:>10.3f} %")
     failed = [c.name for c in checks if not c.passed]
     lines.append("verdict: " + ("PASS" if not failed else "FAIL (" + ", ".join(failed) + ")"))
