@@ -241,3 +241,39 @@ def test_live_rig_check_on_the_simulated_rig(tmp_path):
         cwd=ROOT, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert r.returncode == 2 and "exists already" in r.stderr
+
+
+def test_run_records_the_last_rig_check(tmp_path):
+    """`steerlab run --rig-check DIR/rig.json`: the session file carries the rig's last check,
+    and the report header names it; a bad rig.json stops the run before the rig comes up."""
+    from analysis.pipeline import load_directory, wheel_used_sentence
+    from app.run import run_session
+    from tests.live.conftest import SHORT_PROTOCOL
+
+    proto = tmp_path / "short.toml"
+    one = SHORT_PROTOCOL.replace('[[conditions]]\nname = "PT"\nboundary_deg = 0.0\n', "")
+    assert one != SHORT_PROTOCOL
+    proto.write_text(one)  # one 6.5 s trial
+    hands_off_trial(tmp_path / "rc.h5", world(), periods=1)
+    identify(tmp_path / "rc.h5", tmp_path / "check")
+    bad = tmp_path / "bad.json"
+    bad.write_text("{")
+    with pytest.raises(RigCheckError, match="bad.json: not valid JSON"):
+        run_session(None, 1, tmp_path / "s", protocol_path=str(proto), rig_check=str(bad))
+    assert not (tmp_path / "s").exists()
+    said = []
+    state = run_session(
+        None, 1, tmp_path / "s", protocol_path=str(proto), breaks=False,
+        rig_check=str(tmp_path / "check" / "rig.json"), say=said.append,
+    )  # fmt: skip
+    # The record is written when the session starts, whatever becomes of its trials (on a
+    # loaded machine the real-time loop's stall watchdog may abort one).
+    assert state.value in ("done", "idle"), said
+    with h5py.File(tmp_path / "s" / "S01.h5", "r") as f:
+        rc = json.loads(f.attrs["rig_check"])
+    model = load_rig_model(tmp_path / "check")
+    assert rc["path"] == str(tmp_path / "check" / "rig.json") and rc["passed"] is True
+    assert rc["inertia_kgm2"] == model["inertia_kgm2"]
+    _, inputs = load_directory(tmp_path / "s")
+    line = wheel_used_sentence([i.to_dict() for i in inputs])
+    assert line == f"Wheel: the rig as checked ({tmp_path / 'check' / 'rig.json'}, passed)."
