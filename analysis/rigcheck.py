@@ -16,10 +16,12 @@ from k, so the check needs large angles). ε is fixed (``EPS_RAD_S``), not fitte
 The loop samples the wheel and holds its command: the model simulates that too (the command is
 computed from the state at the start of each hold interval and held over it, the wheel moves
 exactly in between). A Steerlab recording is simulated at its own loop rate (one hold per
-sample, as the loop did); a recording from elsewhere is resampled on a uniform grid and
-simulated with holds of at most ``MAX_HOLD_S`` (a near-continuous actuator). ``delay_s`` is the
-actuator's lag including half a hold interval (the sample-and-hold's own delay), i.e. the
-continuous-time equivalent lag: τ + h/2.
+sample, as the loop did); a recording from elsewhere is simulated on a uniform grid with holds
+of at most ``MAX_HOLD_S`` (a near-continuous actuator; the recorded T_p interpolated onto it) and
+the model's angle is compared with the recorded one at the recording's own (jittered) time
+stamps; a step longer than ``GAP_FACTOR`` × the median is a gap, and each gap-free segment gets
+its own initial state. ``delay_s`` is the lag's continuous-time equivalent at low frequency,
+h/(e^{h/τ} − 1) + h/2 (:func:`lag_equivalent`), which includes the hold's own half interval.
 
 Estimator: output error. The angle is simulated from the recorded T_p and the parameters
 (I, b, k, F_c, G, τ and each gap-free segment's initial angle and velocity) minimise the
@@ -134,9 +136,10 @@ class Nominal:
 
 # -- the hands-off trial's perturbation ---------------------------------------------------------
 def hands_off_spec(stiffness_nm_per_rad: float, angle_sd_rad: float = 0.5):
-    """A multisine for the wheel alone: 10 s period, bands 0.1–2.9 Hz at full power and above at a
-    tenth, scaled so that the angle's SD is about ``angle_sd_rad`` on the nominal wheel (large
-    angles, so that sin θ departs from θ and the imbalance is seen apart from the stiffness)."""
+    """A multisine for the wheel alone: 10 s period, 12 double bands from 0.1 Hz, full power up
+    to 1.5 Hz and a tenth above; torque SD ``angle_sd_rad`` × k (on Table 1's wheel: angle SD
+    about 0.25 rad, peaks about 0.6 rad, so that sin θ departs from θ and an imbalance is seen
+    apart from the stiffness; the motor command stays near 4 N·m)."""
     from protocols.perturbation import PerturbationSpec
 
     return PerturbationSpec(
