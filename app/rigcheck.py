@@ -95,13 +95,19 @@ def mark_hands_off(writer):
     return on
 
 
-def record_hands_off(plan: HandsOffPlan, loop, path: Path, extra: dict) -> State:
-    """Run the plan's trial through the engine into a new session file at ``path``."""
+def record_hands_off(
+    plan: HandsOffPlan, loop, path: Path, extra: dict, ended: list | None = None
+) -> State:
+    """Run the plan's trial through the engine into a new session file at ``path``;
+    ``ended`` collects the TrialEnded events (status, reason)."""
     from protocols.datafile import SessionWriter
+    from protocols.events import TrialEnded
 
     engine = SessionEngine(plan, loop)
     writer = SessionWriter(path, extra_attributes=extra)
     engine.subscribe(mark_hands_off(writer))
+    if ended is not None:
+        engine.subscribe(lambda e: ended.append(e) if isinstance(e, TrialEnded) else None)
     try:
         return engine.run()
     finally:
@@ -149,12 +155,16 @@ def run_rig_check(
     previous = signal.signal(
         signal.SIGINT, lambda *_: loop.emergency_stop()
     )  # Ctrl-C: the motor stops at once; the trial ends as aborted
+    ended: list = []
     try:
-        state = record_hands_off(plan, loop, path, extra)
+        state = record_hands_off(plan, loop, path, extra, ended)
     finally:
         signal.signal(signal.SIGINT, previous)
         loop.close()
     if state is not State.DONE:
-        raise RigCheckRunError(f"{path}: the hands-off trial did not complete ({state.value})")
+        why = ended[-1].reason if ended and ended[-1].reason else f"engine {state.value}"
+        raise RigCheckRunError(
+            f"{path}: the hands-off trial did not complete: {why}; run again with --overwrite"
+        )
     say(f"hands-off trial recorded: {path} (process {os.getpid()})")
     return identify(path, out, rig_path=rig_path, protocol_path=protocol_path)

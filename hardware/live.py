@@ -98,6 +98,7 @@ class RigDevices:
         self.sensor_node: SimulatedTorqueSensor | None = None
         self.glove_sim = None
         self.physiology: dict | None = None
+        self.hands_off = False  # the current trial is a rig check's: no gloves needed
         self._buses: list[can.BusABC] = []
         self.drive: CiA402Drive | None = None
         self.glove: SerialGloveUnit | None = None
@@ -154,6 +155,8 @@ class RigDevices:
         return self.drive.torque_sensor
 
     def begin_trial(self, setup: TrialSetup) -> None:
+        # A hands-off trial (rig check) needs no gloves: their watchdog is off for it.
+        self.hands_off = setup.hands_off
         if self.plant is not None:
             self.plant.begin_trial(setup)
 
@@ -183,6 +186,8 @@ class RigDevices:
         if not d.ok:
             faults = d.active_faults
             return f"drive fault: {faults[-1]}" if faults else "drive not ready"
+        if self.hands_off:
+            return None
         if g.error is not None:
             return f"glove unit failed: {g.error}"
         age = g.age_s()
