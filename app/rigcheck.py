@@ -124,7 +124,6 @@ def run_rig_check(
     say=print,
 ):
     """The hands-off trial on the rig (in real time, in the loop's own process), then the fit."""
-    import os
     import signal
 
     from analysis.rigcheck import identify
@@ -143,7 +142,10 @@ def run_rig_check(
     if path.exists():
         if not overwrite:
             raise RigCheckRunError(f"{path}: exists already; pass --overwrite to replace it")
-        path.unlink()
+        from analysis.rigcheck import FIGURE, INDEX_HTML, RIG_JSON
+
+        for old in (path, out / RIG_JSON, out / INDEX_HTML, out / FIGURE):
+            old.unlink(missing_ok=True)  # no earlier result may pass for this one
     out.mkdir(parents=True, exist_ok=True)
     plan = hands_off_plan(protocol, periods)
     say(f"bringing up the rig ({rig.source}) ...")
@@ -166,5 +168,5 @@ def run_rig_check(
         raise RigCheckRunError(
             f"{path}: the hands-off trial did not complete: {why}; run again with --overwrite"
         )
-    say(f"hands-off trial recorded: {path} (process {os.getpid()})")
+    say(f"hands-off trial recorded: {path}")
     return identify(path, out, rig_path=rig_path, protocol_path=protocol_path)
