@@ -213,6 +213,10 @@ def test_live_rig_check_on_the_simulated_rig(tmp_path):
     """`steerlab rig-check --rig`: the loop in its own process, the simulated drive on the
     virtual CAN bus, the glove on a pty; the wheel's physics from the rig file."""
     text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
+    # As the live tests' fixture: a shared, loaded test machine may be late by more than the
+    # lab's 20 ms; the stall watchdog is tested elsewhere (tests/live).
+    text = text.replace("loop_stall_s = 0.02 ", "loop_stall_s = 0.5 ")
+    assert "loop_stall_s = 0.5 " in text
     extra = (
         "\nwheel_inertia_kgm2 = 0.35\ncoulomb_nm = 0.15\ngravity_nm = 0.3\nactuator_lag_s = 0.005\n"
     )
