@@ -45,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 from numba import njit
+from scipy.ndimage import median_filter
 from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
@@ -591,9 +592,12 @@ def _jacobian(fun, x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 def _newey_west(J: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, int]:
     """Covariance of the estimate with a Bartlett-weighted residual autocovariance; the lag
-    window ends where the residual's autocorrelation first falls below 0.05."""
+    window ends where the residual's autocorrelation first falls below 0.05 (isolated spikes,
+    such as a missed cycle's stale reading, removed first by a 5-point median: white spikes
+    would otherwise hide a slow correlation and cut the window short)."""
     n = len(r)
-    rc = r - r.mean()
+    rm = median_filter(r, size=5, mode="nearest")
+    rc = rm - rm.mean()
     f = np.fft.rfft(rc, 2 * n)
     ac = np.fft.irfft(f * np.conj(f))[:n]
     ac = ac / ac[0] if ac[0] > 0 else ac
