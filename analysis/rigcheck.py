@@ -805,12 +805,21 @@ def _fmt(v: float) -> str:
     return f"{v:.4g}"
 
 
+def format_pm(v: float, sem: float | None) -> str:
+    """A value with its SEM, the value to the SEM's second significant digit."""
+    if sem is None or not sem > 0:
+        return f"{v:.4g} (at a bound)" if sem is None else f"{v:.4g}"
+    decimals = max(0, 1 - math.floor(math.log10(sem)))
+    if decimals > 8:
+        return f"{v:.6g} ± {sem:.2g}"
+    return f"{v:.{decimals}f} ± {sem:.2g}"
+
+
 def _html(fit: RigFit, checks: list[Check], tol_source: str) -> str:
     ok = all(c.passed for c in checks)
     rows = []
     for c in checks:
-        sem = fit.sem.get(c.name)
-        val = _fmt(c.value) + (f" ± {_fmt(sem)}" if sem is not None else "")
+        val = format_pm(c.value, fit.sem[c.name]) if c.name in fit.sem else _fmt(c.value)
         unit = UNITS.get(c.name, "%")
         label = LABELS.get(c.name, "VAF")
         rows.append(
@@ -951,9 +960,8 @@ def measured_world(rig_model: dict, world, wheel, fs_hz: float):
 def summary(fit: RigFit, checks: list[Check]) -> str:
     lines = []
     for p in PARAMS:
-        sem = "at a bound" if fit.sem[p] is None else f"{fit.sem[p]:.2g}"
-        lines.append(f"  {LABELS[p]:<22} {fit.values[p]:>10.4g} ± {sem} {UNITS[p]}")
-    lines.append(f"  {'VAF':<22} {fit.vaf_percent:>10.3f} %")
+        lines.append(f"  {LABELS[p]:<22} {format_pm(fit.values[p], fit.sem[p])} {UNITS[p]}")
+    lines.append(f"  {'VAF':<22} {fit.vaf_percent:.4f} %")
     failed = [c.name for c in checks if not c.passed]
     lines.append("verdict: " + ("PASS" if not failed else "FAIL (" + ", ".join(failed) + ")"))
     return "\n".join(lines)
