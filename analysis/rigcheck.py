@@ -6,12 +6,14 @@ wheel's own physics adds inertia, dry friction and the gravity torque of an unba
 
     cmd(t)   = T_p(t) − b·ω(t) − k·θ(t)                    (what the loop commands)
     T_m      = the command through a first-order lag τ     (the actuator's torque loop)
-    I·ω'     = T_m − F_c·tanh(ω/ε) − G·sin θ,   θ' = ω
+    I·ω'     = T_m + T_0 − F_c·tanh(ω/ε) − G·sin θ,   θ' = ω
 
-Angles positive counter-clockwise seen by the driver; torques positive towards positive angle;
-SI units. G = m·g·r > 0 means the heavy side hangs below the axis at θ = 0 (the gravity torque
-pulls back to centre, like a stiffness k + G at small angles; only the sin θ curvature tells G
-from k, so the check needs large angles). ε is fixed (``EPS_RAD_S``), not fitted.
+(T_0: a constant torque on the wheel, e.g. a command or sensor bias; fitted, reported as
+``offset_Nm``, not judged.) Angles positive counter-clockwise seen by the driver; torques
+positive towards positive angle; SI units. G = m·g·r > 0 means the heavy side hangs below the
+axis at θ = 0 (the gravity torque pulls back to centre, like a stiffness k + G at small angles;
+only the sin θ curvature tells G from k, so the check needs large angles). ε is fixed
+(``EPS_RAD_S``), not fitted.
 
 The loop samples the wheel and holds its command: the model simulates that too (the command is
 computed from the state at the start of each hold interval and held over it, the wheel moves
@@ -74,6 +76,7 @@ LABELS = {
     "delay_s": "actuator lag τ",
 }
 EPS_RAD_S = 0.01  # the smooth sign: tanh(ω/ε)
+NG = 7  # global parameters of the fit: I, b, k, F_c, G, τ, T_0 (then 2 per segment)
 MAX_HOLD_S = 0.25e-3  # hold interval for recordings from other rigs (near-continuous actuator)
 GAP_FACTOR = 2.5  # a time step longer than this × the median step is a gap
 MIN_SEGMENT_S = 1.0  # gap-free stretches shorter than this are not fitted
@@ -460,17 +463,17 @@ def prepare(rec: Recording) -> Prepared:
 
 # -- the model ------------------------------------------------------------------------------
 @njit(cache=True)
-def _simulate(u, th0, om0, I, b, k, fc, eps, g, alpha, h, out):
+def _simulate(u, th0, om0, I, b, k, fc, eps, g, t0, alpha, h, out):
     """θ at the start of each hold interval (len(u) + 1 values into ``out``): the command is
     computed from the state at the interval's start, passed through the discrete lag and held;
-    the wheel moves exactly under the held torques."""
+    the wheel moves exactly under the held torques; ``t0`` is a constant torque on the wheel."""
     th, om = th0, om0
     T = u[0] - b * om - k * th
     for j in range(len(u)):
         out[j] = th
         cmd = u[j] - b * om - k * th
         T += alpha * (cmd - T)
-        acc = (T - fc * np.tanh(om / eps) - g * np.sin(th)) / I
+        acc = (T + t0 - fc * np.tanh(om / eps) - g * np.sin(th)) / I
         th += om * h + 0.5 * acc * h * h
         om += acc * h
     out[len(u)] = th
@@ -533,13 +536,14 @@ class _Problem:
 
     def simulate(self, x: np.ndarray) -> list[np.ndarray]:
         """The model's angle at every raw sample of every segment."""
-        I, b, k, fc, g, tau = x[:6]
+        I, b, k, fc, g, tau, t0 = x[:NG]
         h = self.prep.hold_s
         alpha = 1.0 if tau <= 0 else -math.expm1(-h / tau)
         res = []
         for s, seg in enumerate(self.segs):
             th = np.empty(len(seg.u) + 1)
-            _simulate(seg.u, x[6 + 2 * s], x[7 + 2 * s], I, b, k, fc, self.eps, g, alpha, h, th)
+            th0, om0 = x[NG + 2 * s], x[NG + 1 + 2 * s]
+            _simulate(seg.u, th0, om0, I, b, k, fc, self.eps, g, t0, alpha, h, th)
             idx1 = np.minimum(seg.idx + 1, len(th) - 1)
             res.append(th[seg.idx] * (1.0 - seg.w) + th[idx1] * seg.w)
         return res
@@ -553,8 +557,8 @@ class _Problem:
 
 
 def _equation_error_start(prep: Prepared, eps: float, nominal: Nominal) -> np.ndarray:
-    """I, b, k, F_c from T_p = I θ'' + b θ' + k θ + F_c tanh(θ'/ε), on derivatives of the angle
-    smoothed over 50 ms (a starting point for the output-error fit)."""
+    """I, b, k, F_c, T_0 from T_p + T_0 = I θ'' + b θ' + k θ + F_c tanh(θ'/ε), on derivatives of
+    the angle smoothed over 50 ms (a starting point for the output-error fit)."""
     rows, rhs = [], []
     for a, b in prep.segments:
         t, th = prep.time_s[a:b], prep.angle_rad[a:b]
@@ -566,14 +570,16 @@ def _equation_error_start(prep: Prepared, eps: float, nominal: Nominal) -> np.nd
         d1 = savgol_filter(thg, win, 3, deriv=1, delta=prep.dt)
         d2 = savgol_filter(thg, win, 3, deriv=2, delta=prep.dt)
         cut = slice(win, len(grid) - win)
-        rows.append(np.column_stack([d2, d1, thg, np.tanh(d1 / eps)])[cut])
+        ones = np.ones(len(thg))
+        rows.append(np.column_stack([d2, d1, thg, np.tanh(d1 / eps), ones])[cut])
         rhs.append(np.interp(grid, t, prep.perturbation_Nm[a:b])[cut])
     x = np.array([nominal.inertia_kgm2, nominal.damping_Nms_per_rad,
-                  nominal.stiffness_Nm_per_rad, 0.0])  # fmt: skip
+                  nominal.stiffness_Nm_per_rad, 0.0, 0.0])  # fmt: skip
     if rows:
         sol, *_ = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)
         if np.all(np.isfinite(sol)) and sol[0] > 0 and sol[2] > 0:
             x = sol
+            x[4] = -x[4]  # T_p + T_0 = ...: the constant column's coefficient is −T_0
     return x
 
 
@@ -631,9 +637,12 @@ class RigFit:
     nominal: Nominal
     cost_evals: int
     lag_time_constant_s: float  # the model's discrete lag τ at hold_s
+    offset_nm: float = 0.0  # constant torque on the wheel (bias, cogging mean), not judged
+    offset_sem: float | None = None
 
     def to_dict(self) -> dict:
         d = {p: {"value": self.values[p], "sem": self.sem[p]} for p in PARAMS}
+        d["offset_Nm"] = {"value": self.offset_nm, "sem": self.offset_sem}
         d.update(
             {
                 "format": FORMAT,
@@ -642,7 +651,7 @@ class RigFit:
                 "nominal": self.nominal.to_dict(),
                 "recording": self.source,
                 "model": {
-                    "equation": "I·ω' = lag_τ(T_p − b·ω − k·θ) − F_c·tanh(ω/ε) − G·sin θ",
+                    "equation": "I·ω' = lag_τ(T_p − b·ω − k·θ) + T_0 − F_c·tanh(ω/ε) − G·sin θ",
                     "friction_eps_rad_s": self.eps,
                     "hold_s": self.hold_s,
                     "lag_time_constant_s": self.lag_time_constant_s,
@@ -671,10 +680,10 @@ def fit_rig(prep: Prepared, *, nominal: Nominal | None = None, eps: float = EPS_
     """The output-error fit of the rig model to a prepared recording."""
     nominal = nominal or Nominal()
     prob = _Problem.build(prep, eps)
-    I0, b0, k0, fc0 = _equation_error_start(prep, eps, nominal)
-    x0 = [I0, b0, k0, max(fc0, 0.0), 0.0, 2e-3]
-    lo = [1e-4, -50.0, -50.0, -20.0, -100.0, 0.0]
-    hi = [100.0, 500.0, 5000.0, 20.0, 100.0, 0.2]
+    I0, b0, k0, fc0, off0 = _equation_error_start(prep, eps, nominal)
+    x0 = [I0, b0, k0, max(fc0, 0.0), 0.0, 2e-3, off0]
+    lo = [1e-4, -50.0, -50.0, -20.0, -100.0, 0.0, -50.0]
+    hi = [100.0, 500.0, 5000.0, 20.0, 100.0, 0.2, 50.0]
     for (a, b), seg in zip(prep.segments, prob.segs, strict=True):
         y, t = seg.y, prep.time_s[a:b]
         if prep.velocity_rad_s is not None:
@@ -716,6 +725,7 @@ def fit_rig(prep: Prepared, *, nominal: Nominal | None = None, eps: float = EPS_
     sem_h = np.full(len(x), np.nan)
     sem_f[free] = np.sqrt(np.maximum(np.diag(cov_f), 0.0))
     sem_h[free] = np.sqrt(np.maximum(np.diag(cov_h), 0.0))
+    off_sem = None if not np.isfinite(sem_h[6]) else float(sem_h[6])
     sem_f, sem_h = sem_f[:6], sem_h[:6]
     delay, ddelay = lag_equivalent(float(x[5]), prep.hold_s)
     vals = [*x[:5], delay]
@@ -728,15 +738,16 @@ def fit_rig(prep: Prepared, *, nominal: Nominal | None = None, eps: float = EPS_
     values = {p: float(v) for p, v in zip(PARAMS, vals, strict=True)}
     sem = {p: clean(v) for p, v in zip(PARAMS, sem_h, strict=True)}
     sem_fisher = {p: clean(v) for p, v in zip(PARAMS, sem_f, strict=True)}
-    at_bound = [PARAMS[i] for i in range(6) if held[i]]
+    at_bound = [PARAMS[i] for i in range(6) if held[i]] + (["offset_Nm"] if held[6] else [])
     y = np.concatenate([seg.y for seg in prob.segs])
     vaf = float(100.0 * (1.0 - np.var(r) / np.var(y)))
     model = np.full(len(prep.time_s), np.nan)
     for (a, b), o in zip(prep.segments, prob.simulate(x), strict=True):
         model[a:b] = o
-    inits = [(float(x[6 + 2 * s]), float(x[7 + 2 * s])) for s in range(len(prep.segments))]
+    inits = [(float(x[NG + 2 * s]), float(x[NG + 1 + 2 * s])) for s in range(len(prep.segments))]
     return RigFit(prep.source, values, sem, sem_fisher, vaf, prep, model, eps, prep.hold_s,
-                  L, at_bound, inits, nominal, int(res.nfev), float(x[5]))  # fmt: skip
+                  L, at_bound, inits, nominal, int(res.nfev), float(x[5]),
+                  float(x[6]), off_sem)  # fmt: skip
 
 
 # -- verdict -------------------------------------------------------------------------------------
@@ -834,7 +845,9 @@ text-align:left}}.ok{{color:#070}}.bad{{color:#b00;font-weight:bold}}</style></h
 <h1>Rig check: <span class={"ok" if ok else "bad"}>{"PASS" if ok else "FAIL"}</span></h1>
 <p>Recording: <code>{html.escape(fit.source)}</code>.
 Nominal wheel: {html.escape(fit.nominal.source)}. Tolerances: {html.escape(tol_source)}.</p>
-<p>Model: I·ω' = lag<sub>τ</sub>(T<sub>p</sub> − b·ω − k·θ) − F<sub>c</sub>·tanh(ω/ε) − m·g·r·sin θ,
+<p>Model: I·ω' = lag<sub>τ</sub>(T<sub>p</sub> − b·ω − k·θ) + T<sub>0</sub>
+− F<sub>c</sub>·tanh(ω/ε) − m·g·r·sin θ,
+T<sub>0</sub> = {html.escape(format_pm(fit.offset_nm, fit.offset_sem))} N·m (not judged),
 ε = {fit.eps:g} rad/s; values ± SEM (Jacobian sandwich, Newey–West, {fit.hac_lags} lags).
 The lag is reported as its continuous-time equivalent, h/(e<sup>h/τ</sup> − 1) + h/2 (hold h =
 {fit.hold_s * 1e3:.3g} ms).</p>
@@ -961,6 +974,8 @@ def summary(fit: RigFit, checks: list[Check]) -> str:
     lines = []
     for p in PARAMS:
         lines.append(f"  {LABELS[p]:<22} {format_pm(fit.values[p], fit.sem[p])} {UNITS[p]}")
+    off = format_pm(fit.offset_nm, fit.offset_sem)
+    lines.append(f"  {'torque offset T_0':<22} {off} N·m (not judged)")
     lines.append(f"  {'VAF':<22} {fit.vaf_percent:.4f} %")
     failed = [c.name for c in checks if not c.passed]
     lines.append("verdict: " + ("PASS" if not failed else "FAIL (" + ", ".join(failed) + ")"))

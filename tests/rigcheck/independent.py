@@ -3,8 +3,8 @@
 CSV format. It shares no code with ``hardware/sim`` or ``analysis/rigcheck``.
 
 Model (docs/rig-check.md): the loop commands T_p − b·ω − k·θ, the actuator applies it through a
-first-order lag τ, and the wheel has inertia I, dry friction F_c·tanh(ω/ε) and an imbalance
-G·sin θ; the loop here is continuous (no sample-and-hold).
+first-order lag τ, and the wheel has inertia I, dry friction F_c·tanh(ω/ε), an imbalance
+G·sin θ and a constant torque T_0; the loop here is continuous (no sample-and-hold).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ class Truth:
     gravity: float = 0.25
     lag: float = 0.004
     eps: float = 0.01
+    offset: float = 0.05  # a constant torque on the wheel (a command bias)
 
 
 @dataclass
@@ -54,13 +55,13 @@ def multisine(rng, n: int = 14, sd_nm: float = 2.0):
 
 
 def simulate(truth: Truth, t: np.ndarray, tp_of) -> Trajectory:
-    I, b, k, fc, g, tau, eps = (truth.inertia, truth.damping, truth.stiffness, truth.coulomb,
-                                truth.gravity, truth.lag, truth.eps)  # fmt: skip
+    I, b, k, fc, g, tau, eps, t0 = (truth.inertia, truth.damping, truth.stiffness, truth.coulomb,
+                                    truth.gravity, truth.lag, truth.eps, truth.offset)  # fmt: skip
 
     def rhs(time, x):
         th, om, T = x
         cmd = tp_of(time)[0] - b * om - k * th
-        return [om, (T - fc * np.tanh(om / eps) - g * np.sin(th)) / I, (cmd - T) / tau]
+        return [om, (T + t0 - fc * np.tanh(om / eps) - g * np.sin(th)) / I, (cmd - T) / tau]
 
     th0, om0 = 0.15, -0.3  # arbitrary start: mid-motion, at an arbitrary phase of T_p
     x0 = [th0, om0, tp_of(t[0])[0] - b * om0 - k * th0]

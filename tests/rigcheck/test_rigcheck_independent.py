@@ -58,6 +58,8 @@ def test_recording_from_another_rig_gives_its_parameters(tmp_path, trajectory, c
         assert 0 < sem < 0.05 * max(abs(TRUE[p]), 0.01), (p, sem)
         assert abs(v - TRUE[p]) <= 3 * sem, (p, v, TRUE[p], sem)
     assert d["vaf_percent"] > 99.9
+    off = d["offset_Nm"]
+    assert abs(off["value"] - TRUTH.offset) <= 3 * off["sem"] < 0.01, off
     assert d["nominal"]["inertia_kgm2"] == 0.3 and d["nominal"]["stiffness_Nm_per_rad"] == 4.2
     # Two gaps: three segments, each fitted with its own initial state.
     assert len(d["fit"]["segments_s"]) == 3
