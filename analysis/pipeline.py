@@ -122,6 +122,9 @@ class InputFile:
     # Simulated files: condition → the simulated subject's arm parameters (its base behaviour
     # per condition; each trial varies around it by PopulationSpread.trial_cv).
     simulated_truth: dict[str, dict[str, float]] | None = None
+    # Which wheel the data came from: a simulation's "wheel_used", or a rig session's last rig
+    # check ("rig_check"); None when the file says neither (analysis.rigcheck.wheel_used_of).
+    wheel_used: dict | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -135,6 +138,7 @@ class InputFile:
             "simulated": self.simulated,
             "n_trials": self.n_trials,
             "wheel": self.wheel,
+            "wheel_used": self.wheel_used,
         }
 
 
@@ -172,11 +176,50 @@ def load_directory(
                 n_trials=len(recs),
                 wheel=_wheel_of(a.get("protocol_toml")),
                 simulated_truth=_truth_of(a.get("simulated_subject")),
+                wheel_used=wheel_used_of(a),
             )
         )
         if progress is not None:
             progress(i, len(files), f"read {p.name}")
     return records, inputs
+
+
+def wheel_used_of(attrs) -> dict | None:
+    """A session file's record of its wheel: "wheel_used" (simulate) or "rig_check" (run)."""
+    import json
+
+    for key in ("wheel_used", "rig_check"):
+        v = attrs.get(key)
+        if v is None:
+            continue
+        try:
+            d = json.loads(v) if isinstance(v, str | bytes) else None
+        except ValueError:
+            d = None
+        if isinstance(d, dict):
+            if key == "rig_check":
+                d = {"source": "rig check", "detail": d.get("path"), "passed": d.get("passed")}
+            return d
+    return None
+
+
+def wheel_used_sentence(input_files: list[dict]) -> str:
+    """One line for a report's header: which wheel the data were recorded or simulated with."""
+    seen = []
+    for f in input_files:
+        w = f.get("wheel_used")
+        if w is None:
+            label = "not recorded (nominal assumed)"
+        elif w.get("source") == "measured":
+            label = f"measured by a rig check ({w.get('detail')})"
+        elif w.get("source") == "rig check":
+            ok = {True: "passed", False: "failed"}.get(w.get("passed"), "verdict unknown")
+            label = f"the rig as checked ({w.get('detail')}, {ok})"
+        else:
+            label = f"nominal ({w.get('detail') or 'protocol'})"
+        if label not in seen:
+            seen.append(label)
+    return "Wheel: " + "; ".join(seen) + "." if seen else ""
 
 
 def _wheel_of(protocol_toml: Any) -> dict[str, float] | None:

@@ -42,6 +42,7 @@ from analysis.pipeline import (
     StudyResults,
     analyse_directory,
     json_clean,
+    wheel_used_sentence,
 )
 from analysis.study import AnalysisOptions, ProgressCallback
 from protocols.records import TrialRecord
@@ -465,6 +466,7 @@ def html_page(
         f"{len(res.study.skipped)} trials skipped. "
         f"The paper's findings: {n_ok} agree, {n_diff} differ, "
         f"{len(res.checks) - n_ok - n_diff} not computed.</p>",
+        f'<p class="muted">{_e(wheel_used_sentence(prov.get("input_files", [])))}</p>',
         _warnings(res),
         _contents(images),
         _how_to_read(res),

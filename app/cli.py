@@ -49,6 +49,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         jobs=a.jobs,
         world=_world_from_model(a.model) if a.model else None,
         progress=Progress("simulate"),
+        rig_model=a.rig_model,
     )
     print(f"{len(res)} session file(s) in {a.out} ({time.monotonic() - t0:.1f} s)")
     return 0
@@ -58,6 +59,32 @@ def _world_from_model(path: str):
     from hardware.sim.model_file import load_world_model
 
     return load_world_model(path)
+
+
+def _cmd_rig_check(a: argparse.Namespace) -> int:
+    from analysis.rigcheck import identify, summary
+    from app.rigcheck import RigCheckRunError, run_rig_check
+
+    if a.recording:
+        if a.overwrite or a.periods is not None:
+            raise RigCheckRunError("--periods and --overwrite are for a hands-off trial (--rig)")
+        fit, checks = identify(
+            a.recording, a.out, rig_path=a.rig, protocol_path=a.protocol, trial=a.trial
+        )
+    else:
+        if a.trial:
+            raise RigCheckRunError("--trial picks a trial of a --recording")
+        fit, checks = run_rig_check(
+            a.rig,
+            a.out,
+            periods=a.periods or 3,
+            protocol_path=a.protocol,
+            overwrite=a.overwrite,
+        )
+    print(f"rig check of {fit.source}:")
+    print(summary(fit, checks))
+    print(f"written: {Path(a.out) / 'rig.json'}, {Path(a.out) / 'index.html'}")
+    return 0
 
 
 def _cmd_export(a: argparse.Namespace) -> int:
@@ -99,7 +126,13 @@ def _cmd_run(a: argparse.Namespace) -> int:
     from protocols.engine import State
 
     state = run_session(
-        a.rig, a.subject, a.out, resume=a.resume, protocol_path=a.protocol, breaks=not a.no_breaks
+        a.rig,
+        a.subject,
+        a.out,
+        resume=a.resume,
+        protocol_path=a.protocol,
+        breaks=not a.no_breaks,
+        rig_check=a.rig_check,
     )
     return 0 if state is State.DONE else 3
 
@@ -145,6 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--overwrite", action="store_true", help="replace existing session files")
     s.add_argument("--jobs", type=int, default=None, help="worker processes (default: cores)")
     s.add_argument("--model", help="extended world model (model.toml from steerlab diagnose)")
+    s.add_argument("--rig-model", help="rig.json of steerlab rig-check: simulate the measured "
+                   "wheel instead of the nominal one")  # fmt: skip
     s.set_defaults(func=_cmd_simulate)
 
     e = sub.add_parser("export", help="session files → trial interchange CSV + JSON")
@@ -205,7 +240,23 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--resume", action="store_true", help="continue an interrupted session")
     n.add_argument("--protocol", help="protocol TOML (default: the paper's protocol)")
     n.add_argument("--no-breaks", action="store_true", help="skip the protocol's breaks")
+    n.add_argument("--rig-check", help="rig.json of the rig's last rig check, recorded in the "
+                   "session file")  # fmt: skip
     n.set_defaults(func=_cmd_run)
+
+    c = sub.add_parser("rig-check", help="measure the wheel the rig renders (hands off)")
+    c.add_argument("--rig", help="rig configuration TOML (default: the simulated rig); its "
+                   "[rig_check] table sets the tolerances")  # fmt: skip
+    c.add_argument("--out", required=True, help="directory for rig.json, index.html (and the "
+                   "hands-off trial's rigcheck.h5)")  # fmt: skip
+    c.add_argument("--recording", help="identify from this recording (session file or "
+                   "interchange CSV) instead of running a hands-off trial")  # fmt: skip
+    c.add_argument("--trial", help="with a session file: the trial group (default: its latest "
+                   "complete hands-off trial)")  # fmt: skip
+    c.add_argument("--protocol", help="protocol TOML: loop rate and nominal wheel")
+    c.add_argument("--periods", type=int, help="perturbation periods of 10 s (default 3)")
+    c.add_argument("--overwrite", action="store_true", help="replace DIR/rigcheck.h5")
+    c.set_defaults(func=_cmd_rig_check)
 
     t = sub.add_parser("stop", help="emergency stop of the session running in --out")
     t.add_argument("--out", default="sessions")

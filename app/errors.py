@@ -21,6 +21,8 @@ _USER_ERRORS = (
     ("analysis.diagnosis", "DiagnosisError"),
     ("hardware.can.config", "ConfigError"),
     ("hardware.live", "RigError"),
+    ("analysis.rigcheck", "RigCheckError"),
+    ("app.rigcheck", "RigCheckRunError"),
 )
 
 

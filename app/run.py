@@ -142,6 +142,7 @@ def run_session(
     protocol_path: str | None = None,
     breaks: bool = True,
     say=print,
+    rig_check: str | None = None,
 ) -> State:
     if subject_number < 1:
         raise RunError(f"--subject must be ≥ 1, got {subject_number}")
@@ -152,6 +153,11 @@ def run_session(
             f"the protocol ({protocol.source_path}) runs its loop at {protocol.loop_rate_hz:g} Hz "
             f"but the rig ({rig.source}) at {rig.loop_rate_hz:g} Hz; make them agree"
         )
+    last_check = None
+    if rig_check is not None:
+        from analysis.rigcheck import load_rig_model, rig_check_record
+
+        last_check = rig_check_record(load_rig_model(rig_check))  # before the rig comes up
     plan = build_plan(protocol, subject_number)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -180,14 +186,19 @@ def run_session(
         )
         _claim(me, say)
         try:
-            return _run(me, rig, rig_path, subject_number, plan, path, attempts, breaks, say, lock)
+            return _run(
+                me, rig, rig_path, subject_number, plan, path, attempts, breaks, say, lock,
+                last_check,
+            )  # fmt: skip
         finally:
             _release(me)
     finally:
         lock.release()
 
 
-def _run(me, rig, rig_path, subject_number, plan, path, attempts, breaks, say, lock) -> State:
+def _run(
+    me, rig, rig_path, subject_number, plan, path, attempts, breaks, say, lock, last_check
+) -> State:
     # The stop signals act from now on (a stop during the rig's bring-up ends the session before
     # its first trial), not only once the engine runs.
     holder: dict = {}
@@ -211,6 +222,8 @@ def _run(me, rig, rig_path, subject_number, plan, path, attempts, breaks, say, l
         extra = {"rig": rig.describe(), "realtime_tuning": loop.realtime}
         if loop.physiology is not None:
             extra.update({"simulated": True, "simulated_subject": loop.physiology})
+        if last_check is not None:
+            extra["rig_check"] = last_check
         writer = SessionWriter(path, extra_attributes=extra, lock=lock)
         engine.subscribe(writer)
         engine.subscribe(_reporter(say, len(plan.trials)))

@@ -25,7 +25,7 @@ from protocols.datafile import (
 from protocols.engine import SessionEngine, State
 from protocols.events import TrialEnded
 from protocols.names import inside
-from protocols.protocol import Protocol, load_protocol
+from protocols.protocol import Protocol, VirtualWheel, load_protocol
 from protocols.session import build_plan, subject_id
 from protocols.writelock import LockedError, WriterLock
 
@@ -44,6 +44,8 @@ class SimulationJob:
     world: WorldConfig
     resume: bool
     locked: bool = False  # the calling process holds the file's writer lock
+    wheel: VirtualWheel | None = None  # the wheel the loop renders (None: the protocol's)
+    wheel_used: dict | None = None  # which wheel, for the session file (see wheel_record)
 
 
 def session_path(out_dir: str | Path, subject: str) -> Path:
@@ -62,7 +64,7 @@ def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | Non
     plan = build_plan(protocol, job.subject_number)
     path = session_path(job.out_dir, plan.subject)
     attempts = SessionFile(path).attempts() if (job.resume and path.exists()) else None
-    rig = simulated_rig(physiology, job.world, protocol.wheel, PopulationSpread())
+    rig = simulated_rig(physiology, job.world, job.wheel or protocol.wheel, PopulationSpread())
     loop = rig.device_loop(realtime=True) if job.realtime else rig.batch_loop()
     engine = SessionEngine(plan, loop, attempts=attempts)
     writer = SessionWriter(
@@ -73,6 +75,7 @@ def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | Non
             "simulation_seed": job.seed,
             "simulated_subject": physiology.to_dict(),
             "world": job.world.to_dict(),
+            "wheel_used": job.wheel_used or wheel_record(protocol, None),
         },
     )
     engine.subscribe(writer)
@@ -126,6 +129,27 @@ def check_output(
                 )
 
 
+def wheel_record(protocol: Protocol, rig_model: dict | None) -> dict:
+    """Which wheel a simulation used: the protocol's nominal one, or a rig check's."""
+    if rig_model is None:
+        w = protocol.wheel
+        return {
+            "source": "nominal",
+            "detail": f"protocol {protocol.name}",
+            "inertia_kgm2": w.inertia_kgm2,
+            "damping_Nms_per_rad": w.damping_nms_per_rad,
+            "stiffness_Nm_per_rad": w.stiffness_nm_per_rad,
+        }
+    from analysis.rigcheck import PARAMS
+
+    return {
+        "source": "measured",
+        "detail": rig_model["_path"],
+        **{k: rig_model[k]["value"] for k in PARAMS},
+        "vaf_percent": rig_model.get("vaf_percent"),
+    }
+
+
 def simulate_study(
     n_subjects: int,
     out_dir: str | Path,
@@ -138,7 +162,10 @@ def simulate_study(
     jobs: int | None = None,
     world: WorldConfig | None = None,
     progress: Callable[[int, int, str], None] | None = None,
+    rig_model: str | Path | None = None,
 ) -> list[dict]:
+    """``rig_model``: a rig check's ``rig.json``: the simulated wheel is the measured one
+    (inertia, rendered damping and stiffness, friction, imbalance, actuator lag)."""
     if n_subjects < 1:
         raise SimulateError(f"--subjects must be ≥ 1, got {n_subjects}")
     protocol: Protocol = load_protocol(protocol_path)  # validates before anything is written
@@ -177,7 +204,7 @@ def simulate_study(
                 p.unlink()
         return _simulate_locked(
             out, subjects, n_subjects, seed, protocol_path, protocol, realtime, resume, jobs,
-            world, progress,
+            world, progress, rig_model,
         )  # fmt: skip
 
 
@@ -216,10 +243,29 @@ def _simulate_locked(
     jobs: int | None,
     world: WorldConfig | None,
     progress: Callable[[int, int, str], None] | None,
+    rig_model: str | Path | None = None,
 ) -> list[dict]:
     world = world or WorldConfig(fs_hz=protocol.loop_rate_hz)
+    wheel, measured = None, None
+    if rig_model is not None:
+        from analysis.rigcheck import load_rig_model, measured_world
+
+        measured = load_rig_model(rig_model)
+        world, wheel = measured_world(measured, world, protocol.wheel, protocol.loop_rate_hz)
+    used = wheel_record(protocol, measured)
     jobs_list = [
-        SimulationJob(i, str(out), seed, protocol_path, realtime, world, resume, locked=True)
+        SimulationJob(
+            i,
+            str(out),
+            seed,
+            protocol_path,
+            realtime,
+            world,
+            resume,
+            locked=True,
+            wheel=wheel,
+            wheel_used=used,
+        )  # fmt: skip
         for i in range(1, n_subjects + 1)
     ]
     total = n_subjects * len(build_plan(protocol, 1).trials)

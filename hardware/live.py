@@ -98,6 +98,7 @@ class RigDevices:
         self.sensor_node: SimulatedTorqueSensor | None = None
         self.glove_sim = None
         self.physiology: dict | None = None
+        self.hands_off = False  # the current trial is a rig check's: no gloves needed
         self._buses: list[can.BusABC] = []
         self.drive: CiA402Drive | None = None
         self.glove: SerialGloveUnit | None = None
@@ -108,12 +109,11 @@ class RigDevices:
                 from hardware.glove.simulated import SimulatedGloveUnit
                 from hardware.sim.physiology import make_population
                 from hardware.sim.rig import simulated_rig
-                from hardware.sim.world import WorldConfig
 
                 sim = rig.simulation
                 phys = make_population(subject_number, seed=sim.seed)[subject_number - 1]
                 self.physiology = phys.to_dict()
-                sim_rig = simulated_rig(phys, WorldConfig(fs_hz=rig.loop_rate_hz))
+                sim_rig = simulated_rig(phys, sim.world_config(rig.loop_rate_hz))
                 self.plant = WorldPlant(sim_rig, sim.column_torque_offset_nm, seed=phys.seed)
                 # A channel of its own: two simulated rigs in one process must not cross-talk.
                 drive_cfg = replace(
@@ -155,6 +155,8 @@ class RigDevices:
         return self.drive.torque_sensor
 
     def begin_trial(self, setup: TrialSetup) -> None:
+        # A hands-off trial (rig check) needs no gloves: their watchdog is off for it.
+        self.hands_off = setup.hands_off
         if self.plant is not None:
             self.plant.begin_trial(setup)
 
@@ -195,6 +197,8 @@ class RigDevices:
                 return "drive not ready"
             more = f" (and {len(faults) - 1} more)" if len(faults) > 1 else ""
             return f"drive fault: {faults[0]}{more}"
+        if self.hands_off:
+            return None
         if g.error is not None:
             return f"glove unit failed: {g.error}"
         age = g.age_s()

@@ -20,7 +20,26 @@ from hardware.safety import SafetyLimits
 
 SIMULATED_RIG = "simulated.toml"
 SIMULATED_PORT = "simulated"
-KNOWN_TABLES = {"drive", "safety", "glove", "simulation"}
+KNOWN_TABLES = {"drive", "safety", "glove", "simulation", "rig_check"}
+#: [simulation] fields: who holds the wheel, and the simulated wheel's own physics.
+SIMULATION_FIELDS = (
+    "seed",
+    "column_torque_offset_nm",
+    "wheel_inertia_kgm2",
+    "coulomb_nm",
+    "gravity_nm",
+    "actuator_lag_s",
+)
+#: [rig_check] fields (steerlab rig-check's verdict) and their defaults.
+RIG_CHECK_DEFAULTS = {
+    "inertia_rel": 0.10,
+    "damping_rel": 0.10,
+    "stiffness_rel": 0.10,
+    "coulomb_max_nm": 0.10,
+    "gravity_max_nm": 0.10,
+    "delay_max_s": 0.010,
+    "vaf_min_percent": 95.0,
+}
 
 
 @dataclass(frozen=True)
@@ -38,6 +57,23 @@ class GloveConfig:
 class SimulationConfig:
     seed: int = 0
     column_torque_offset_nm: float = 0.05
+    # The simulated wheel's physics (hands-off rig checks measure these).
+    wheel_inertia_kgm2: float = 0.3
+    coulomb_nm: float = 0.0
+    gravity_nm: float = 0.0
+    actuator_lag_s: float = 0.0
+
+    def world_config(self, fs_hz: float):
+        """The simulated world's configuration for this rig."""
+        from hardware.sim.mechanisms import ActuatorLag, CoulombFriction, Mechanisms, WheelImbalance
+        from hardware.sim.world import WorldConfig
+
+        mech = Mechanisms(
+            coulomb_friction=CoulombFriction(self.coulomb_nm),
+            wheel_imbalance=WheelImbalance(self.gravity_nm),
+            actuator_lag=ActuatorLag(self.actuator_lag_s),
+        )
+        return WorldConfig(fs_hz=fs_hz, wheel_inertia_kgm2=self.wheel_inertia_kgm2, mechanisms=mech)
 
 
 @dataclass(frozen=True)
@@ -47,6 +83,7 @@ class RigConfig:
     glove: GloveConfig
     safety: SafetyLimits
     simulation: SimulationConfig | None
+    rig_check: dict | None = None  # [rig_check] as given (keys of RIG_CHECK_DEFAULTS)
 
     @property
     def simulated(self) -> bool:
@@ -128,9 +165,12 @@ def load_rig(path: str | Path | None = None) -> RigConfig:
         if not isinstance(t, dict):
             raise ConfigError(src, "simulation", None, "expected a table")
         for key, value in t.items():
-            if key not in ("seed", "column_torque_offset_nm"):
+            if key not in SIMULATION_FIELDS:
                 raise ConfigError(
-                    src, "simulation", key, "unknown field (known: column_torque_offset_nm, seed)"
+                    src,
+                    "simulation",
+                    key,
+                    f"unknown field (known: {', '.join(sorted(SIMULATION_FIELDS))})",
                 )
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise ConfigError(src, "simulation", key, f"must be a number, got {value!r}")
@@ -140,9 +180,14 @@ def load_rig(path: str | Path | None = None) -> RigConfig:
                 raise ConfigError(
                     src, "simulation", key, f"must be a whole number ≥ 0, got {value!r}"
                 )
+        if not t.get("wheel_inertia_kgm2", 0.3) > 0:
+            raise ConfigError(src, "simulation", "wheel_inertia_kgm2", "must be > 0")
+        for key in ("coulomb_nm", "actuator_lag_s"):
+            if t.get(key, 0.0) < 0:
+                raise ConfigError(src, "simulation", key, "must be ≥ 0")
         sim = SimulationConfig(
             seed=int(t.get("seed", 0)),
-            column_torque_offset_nm=float(t.get("column_torque_offset_nm", 0.05)),
+            **{k: float(t[k]) for k in SIMULATION_FIELDS[1:] if k in t},
         )
         if drive.interface != "virtual":
             raise ConfigError(
@@ -155,4 +200,22 @@ def load_rig(path: str | Path | None = None) -> RigConfig:
         raise ConfigError(
             src, "glove", "port", '"simulated" needs a [simulation] table (who holds the wheel)'
         )
-    return RigConfig(src, drive, glove, safety, sim)
+    return RigConfig(src, drive, glove, safety, sim, _rig_check(src, data.get("rig_check")))
+
+
+def _rig_check(src: str, t) -> dict | None:
+    """The [rig_check] tolerances, checked; None when the file has none (defaults apply)."""
+    if t is None:
+        return None
+    if not isinstance(t, dict):
+        raise ConfigError(src, "rig_check", None, "expected a table")
+    out = {}
+    for key, value in t.items():
+        if key not in RIG_CHECK_DEFAULTS:
+            raise ConfigError(
+                src, "rig_check", key, f"unknown field (known: {', '.join(RIG_CHECK_DEFAULTS)})"
+            )
+        if isinstance(value, bool) or not isinstance(value, int | float) or not value >= 0:
+            raise ConfigError(src, "rig_check", key, f"must be a number ≥ 0, got {value!r}")
+        out[key] = float(value)
+    return out

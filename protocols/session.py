@@ -168,6 +168,7 @@ class TrialSetup:
     wheel_k: float
     wheel_b: float
     schedule: ConditionSchedule | None = None  # time-varying trials only
+    hands_off: bool = False  # a rig check: nobody holds the wheel (analysis/rigcheck.py)
 
     @property
     def n_samples(self) -> int:

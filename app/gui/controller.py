@@ -157,7 +157,39 @@ class SessionController:
         self._open(build_plan(self.protocol, number, sf.subject), path, sf.attempts())
         return path
 
-    def _open(self, plan: SessionPlan, path: Path, attempts: dict | None) -> None:
+    def open_rig_check(self, periods: int = 3) -> Path:
+        """A rig check instead of a session: one hands-off trial (docs/rig-check.md), recorded
+        in ``DATA_ROOT/rigcheck/<UTC time>/rigcheck.h5``; :meth:`identify_rig_check` then
+        writes rig.json and index.html beside it."""
+        from datetime import UTC, datetime
+
+        from app.rigcheck import SESSION_FILE, hands_off_plan
+
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S")
+        path = self.data_root / "rigcheck" / stamp / SESSION_FILE
+        if path.exists():
+            raise ControlError(f"{path} exists already: wait a second and try again")
+        self._open(hands_off_plan(self.protocol, periods), path, None, hands_off=True)
+        return path
+
+    @property
+    def is_rig_check(self) -> bool:
+        from app.rigcheck import HandsOffPlan
+
+        return isinstance(self.plan, HandsOffPlan)
+
+    def identify_rig_check(self):
+        """Fit the rig check's recording; (RigFit, checks). Runs for a few seconds: call it off
+        the GUI thread."""
+        from analysis.rigcheck import identify
+
+        if not self.is_rig_check or self.path is None:
+            raise ControlError("no rig check is open")
+        return identify(self.path, self.path.parent, rig_path=self.rig_path)
+
+    def _open(
+        self, plan: SessionPlan, path: Path, attempts: dict | None, *, hands_off: bool = False
+    ) -> None:
         if self.engine is not None:
             raise ControlError("a session is open already; close the window to start another")
         try:
@@ -174,9 +206,16 @@ class SessionController:
             lock.release()
             raise
         engine = SessionEngine(plan, rig.loop, attempts=attempts, pause_between_trials=True)
-        writer = SessionWriter(path, extra_attributes=dict(rig.extra_attributes), lock=lock)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        extra = dict(rig.extra_attributes) | ({"hands_off_check": True} if hands_off else {})
+        writer = SessionWriter(path, extra_attributes=extra, lock=lock)
         self._lock = lock
-        engine.subscribe(writer)  # first: the file is written before anything is displayed
+        if hands_off:
+            from app.rigcheck import mark_hands_off
+
+            engine.subscribe(mark_hands_off(writer))
+        else:
+            engine.subscribe(writer)  # first: the file is written before anything is displayed
         for s in self.subscribers:
             engine.subscribe(s)
         self.plan, self.rig, self.engine, self.writer, self.path = plan, rig, engine, writer, path

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import html
 import math
+import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from PySide6.QtCore import Qt, QTimer
@@ -59,6 +61,19 @@ from protocols import events as ev
 from protocols.protocol import Protocol
 from protocols.session import TrialSpec, subject_id
 
+#: What the subject dashboard says during a rig check.
+HANDS_OFF_MESSAGE = "RIG CHECK — let go of the wheel, do not touch it"
+
+
+@dataclass(frozen=True)
+class RigCheckDone:
+    """Posted (through the bridge's signal) when a rig check's identification ends."""
+
+    fit: object
+    checks: list
+    error: BaseException | None
+
+
 _STATE_COLOUR = {
     "pending": "#ffffff",
     RUNNING: "#fff3b0",
@@ -93,6 +108,7 @@ class ExperimenterWindow(QMainWindow):
         super().__init__()
         self.protocol = protocol
         self.data_root = Path(data_root)
+        self.rig_check_periods = 3  # of the hands-off trial's 10 s perturbation period
         self.setWindowTitle(f"Steerlab — experimenter ({protocol.name})")
         self.live = LiveData()
         self.bridge = EngineBridge(self.live, self)
@@ -185,12 +201,19 @@ class ExperimenterWindow(QMainWindow):
         self.session_combo.currentIndexChanged.connect(lambda _: self.resume_radio.setChecked(True))
         self.open_button = QPushButton("Open session")
         self.open_button.clicked.connect(self.open_session)
+        self.rig_check_button = QPushButton("Rig check (hands off)")
+        self.rig_check_button.setToolTip(
+            "One trial with nobody touching the wheel: measures the wheel the rig renders "
+            "(docs/rig-check.md)"
+        )
+        self.rig_check_button.clicked.connect(self.open_rig_check)
         g.addWidget(self.new_radio, 0, 0)
         g.addWidget(self.subject_spin, 0, 1)
         g.addWidget(self.order_label, 1, 0, 1, 2)
         g.addWidget(self.resume_radio, 2, 0)
         g.addWidget(self.session_combo, 2, 1)
         g.addWidget(self.open_button, 3, 0, 1, 2)
+        g.addWidget(self.rig_check_button, 4, 0, 1, 2)
         lay.addWidget(box)
 
         self.table = QTableWidget(0, 6)
@@ -333,9 +356,7 @@ class ExperimenterWindow(QMainWindow):
         self._alert("")
         plan = self.controller.plan
         assert plan is not None
-        for w in (self.new_radio, self.resume_radio, self.subject_spin, self.session_combo,
-                  self.open_button):  # fmt: skip
-            w.setEnabled(False)
+        self._lock_session_choice()
         self.order_label.setText(
             f"{plan.subject} (Latin-square row {plan.latin_square_row}): "
             f"{' → '.join(plan.condition_order)}\nfile: {self.controller.path}"
@@ -343,6 +364,55 @@ class ExperimenterWindow(QMainWindow):
         self._refresh_table()
         self._show_next()
         self._update_controls()
+
+    def _lock_session_choice(self) -> None:
+        for w in (self.new_radio, self.resume_radio, self.subject_spin, self.session_combo,
+                  self.open_button, self.rig_check_button):  # fmt: skip
+            w.setEnabled(False)
+
+    def open_rig_check(self) -> None:
+        try:
+            path = self.controller.open_rig_check(self.rig_check_periods)
+        except (ControlError, ValueError, OSError) as e:
+            self._alert(str(e))
+            return
+        self._alert("")
+        self._lock_session_choice()
+        self.order_label.setText(
+            f"RIG CHECK: one hands-off trial; nobody may touch the wheel.\nfile: {path}"
+        )
+        self.dashboard.set_active(False, HANDS_OFF_MESSAGE)
+        self._refresh_table()
+        self._show_next()
+        self._update_controls()
+
+    def _identify_rig_check(self) -> None:
+        """The fit off the GUI thread; its result comes back through the bridge's signal."""
+
+        def work():
+            try:
+                fit, checks = self.controller.identify_rig_check()
+                self.bridge.event.emit(RigCheckDone(fit, checks, None))
+            except Exception as e:  # shown to the experimenter, never lost
+                self.bridge.event.emit(RigCheckDone(None, [], e))
+
+        self._alert("rig check: identifying the wheel ...")
+        self.rig_check_thread = threading.Thread(target=work, name="steerlab-rigcheck")
+        self.rig_check_thread.start()
+
+    def _show_rig_check(self, done: RigCheckDone) -> None:
+        if done.error is not None:
+            self._alert(f"rig check: {done.error}")
+            return
+        from analysis.rigcheck import summary
+
+        failed = [c.name for c in done.checks if not c.passed]
+        verdict = "PASS" if not failed else f"FAIL ({', '.join(failed)})"
+        self.rig_check_result = summary(done.fit, done.checks)
+        where = self.controller.path.parent if self.controller.path else "?"
+        self._alert(f"rig check: {verdict}; rig.json and index.html in {where}")
+        self.order_label.setText(f"RIG CHECK done: {verdict}\n{self.rig_check_result}")
+        self.dashboard.set_active(False, "Rig check done: you may take the wheel again")
 
     # -- events from the engine (GUI thread) --------------------------------------------------
     def on_event(self, event: object) -> None:
@@ -353,13 +423,17 @@ class ExperimenterWindow(QMainWindow):
             b = float(event.attributes.get("boundary_deg", math.inf))
             self.plots.set_boundary(b)
             self.dashboard.show_condition(event.condition, b)
-            self.dashboard.set_active(True)
+            self.dashboard.set_active(True, HANDS_OFF_MESSAGE if c.is_rig_check else "")
             self._show_next()
         elif isinstance(event, ev.TrialEnded):
             self.dashboard.set_active(False, "break")
             self._quality(event)
             if event.status != "complete":
                 self._alert(f"trial {event.key} aborted: {event.reason}")
+            elif c.is_rig_check:
+                self._identify_rig_check()
+        elif isinstance(event, RigCheckDone):
+            self._show_rig_check(event)
         elif isinstance(event, ev.TrialMark):
             self.statusBar().showMessage(f"{event.kind} at sample {event.sample}", 5000)
         elif isinstance(event, WorkerFinished):
@@ -566,5 +640,8 @@ class ExperimenterWindow(QMainWindow):
                 self.controller.shutdown("window closed")
             except ControlError as e:
                 self._alert(str(e))
+            t = getattr(self, "rig_check_thread", None)
+            if t is not None:
+                t.join(60.0)  # a rig check's fit: seconds; its files must be complete
             self.dashboard.close()
         event.accept()

@@ -42,6 +42,18 @@ class CoulombFriction:
 
 
 @dataclass(frozen=True)
+class WheelImbalance:
+    """An unbalanced wheel: gravity torque T = −m g r sin θ (m g r > 0: the heavy side hangs
+    below the axis at θ = 0, so the torque pulls the wheel back to centre)."""
+
+    torque_nm: float = 0.0  # m g r, N·m
+
+    @property
+    def active(self) -> bool:
+        return self.torque_nm != 0.0
+
+
+@dataclass(frozen=True)
 class StiffnessNonlinearity:
     """Intrinsic stiffness that rises with deflection: extra torque −k3 θ_h³."""
 
@@ -108,6 +120,7 @@ class Mechanisms:
     sensor_delay: SensorDelay = field(default_factory=SensorDelay)
     grip_scheduled_stiffness: GripScheduledStiffness = field(default_factory=GripScheduledStiffness)
     drift: Drift = field(default_factory=Drift)
+    wheel_imbalance: WheelImbalance = field(default_factory=WheelImbalance)
 
     def active(self) -> list[str]:
         return [f.name for f in fields(self) if getattr(self, f.name).active]
@@ -131,6 +144,7 @@ class Mechanisms:
         p[w.P_K3] = self.stiffness_nonlinearity.k3_nm_per_rad3
         p[w.P_COUL] = self.coulomb_friction.torque_nm
         p[w.P_COUL_EPS] = self.coulomb_friction.velocity_eps_rad_s
+        p[w.P_GRAV] = self.wheel_imbalance.torque_nm
         tau = self.actuator_lag.tau_s
         # Exact discrete first-order lag; alpha = 1 is no lag.
         p[w.P_ACT_ALPHA] = 1.0 - np.exp(-dt / tau) if tau > 0 else 1.0

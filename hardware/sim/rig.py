@@ -19,12 +19,21 @@ import numpy as np
 from hardware.interfaces import DriveReading, GripReading
 from hardware.loop import LOOP_CHANNELS, DeviceLoop
 from hardware.safety import SafetyLimits
-from hardware.sim.physiology import ConditionBehaviour, PopulationSpread, SubjectPhysiology
+from hardware.sim.physiology import (
+    ArmParams,
+    ConditionBehaviour,
+    PopulationSpread,
+    SubjectPhysiology,
+)
 from hardware.sim.schedule import DEFAULT_TAU_S, BehaviourSchedule, schedule_for
 from hardware.sim.world import TRUTH_CHANNELS, World, WorldConfig
 from protocols.engine import LoopControl, TrialFault
 from protocols.protocol import VirtualWheel
 from protocols.session import TrialSetup
+
+#: A hands-off trial (rig check): the arm is detached from the wheel (no contact stiffness or
+#: damping), so the wheel moves alone; the arm's own states stay at rest.
+HANDS_OFF = ConditionBehaviour(ArmParams(0.1, 1.0, 6.0, 0.0, 0.0), 0.0, 0.0, 0.0)
 
 
 @dataclass
@@ -86,12 +95,13 @@ class SimulatedRig:
         if abs(setup.fs_hz - self.cfg.fs_hz) > 1e-9:
             self.cfg = replace(self.cfg, fs_hz=setup.fs_hz)
             self.world.cfg = self.cfg
-        b = self.subject.behaviour(setup, self.cfg)
+        if setup.hands_off:
+            b, schedule = HANDS_OFF, None
+        else:
+            b = self.subject.behaviour(setup, self.cfg)
+            schedule = self.subject.behaviour_schedule(setup, self.cfg)
         self.world.begin_trial(
-            b,
-            self.subject.physiology.left_share,
-            self.subject.trial_seed(setup),
-            self.subject.behaviour_schedule(setup, self.cfg),
+            b, self.subject.physiology.left_share, self.subject.trial_seed(setup), schedule
         )
         self.drive.command = 0.0
         return b

@@ -8,7 +8,8 @@ Bodies (angles in rad, positive counter-clockwise seen by the driver):
 
 so that θ/T_d = 1/(b_c s + k_c) + 1/(I_i s² + b_i s + k_i), the paper's admittance.
 T_hand_extra carries the remnant and the torques of added mechanisms (reflexes, stiffening,
-time-varying parameters); T_wheel_extra carries wheel-side mechanisms (dry friction).
+time-varying parameters); T_wheel_extra carries wheel-side mechanisms (dry friction, the
+gravity torque of an unbalanced wheel).
 
 Time-varying trials (a :class:`hardware.sim.schedule.BehaviourSchedule`) move the arm parameters
 sample by sample through the same per-sample deltas (``dpar``) relative to the trial's base
@@ -42,7 +43,8 @@ P_KSW, P_BSW, P_QANG, P_TRES, P_KC, P_BC = 0, 1, 2, 3, 4, 5
 P_K3, P_COUL, P_COUL_EPS, P_ACT_ALPHA = 6, 7, 8, 9
 P_RKP, P_RKV, P_RW, P_RZ, P_DT, P_HAS_DPAR = 10, 11, 12, 13, 14, 15
 P_DPAR_HALF = 16  # dt/2 for scheduled trials (see World._scheduled_deltas), else 0
-N_PARAMS = 17
+P_GRAV = 17  # wheel imbalance m·g·r, N·m (torque −m·g·r·sin θ on the wheel)
+N_PARAMS = 18
 # Indices into the kernel's state vector (beyond the 4 mechanical states).
 S_TM, S_RA, S_RAD, S_RPOS, S_SPOS, S_CMD = 4, 5, 6, 7, 8, 9
 S_NONFINITE = 10  # cycles whose command had a non-finite input (zero torque applied instead)
@@ -214,6 +216,8 @@ def _advance(
             contact += dcon_true
         if p[P_COUL] != 0.0:
             w -= p[P_COUL] * np.tanh(om / p[P_COUL_EPS])
+        if p[P_GRAV] != 0.0:
+            w -= p[P_GRAV] * np.sin(th)
         if p[P_RKP] != 0.0 or p[P_RKV] != 0.0:
             drive = p[P_RKP] * thh + p[P_RKV] * omh
             nr = ring_r.shape[0]
