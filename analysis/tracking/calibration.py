@@ -200,9 +200,10 @@ class Calibration:
         One subject: that subject's own points. Several: the group points (μ = median).
         Time-varying trials among the records are skipped by the study.
         """
-        from analysis.study import analyze_study
+        from analysis.study import AnalysisOptions, analyze_study
 
-        study = analyze_study(list(records))
+        # The default fit; the side-by-side second weighting is for reports, not needed here.
+        study = analyze_study(list(records), options=AnalysisOptions(compare_weightings=False))
         subjects = sorted({r.subject for r in study.subject_conditions})
         if not subjects:
             raise CalibrationError(f"{source}: no analysable stationary trials")

@@ -196,6 +196,7 @@ class SessionController:
             check_name(plan.subject, f"{path}: subject")
             self.data_root.mkdir(parents=True, exist_ok=True)
             inside(self.data_root, path)
+            path.parent.mkdir(parents=True, exist_ok=True)  # a rig check's own folder
             # The writer lock first: a session another process writes is refused, naming it.
             lock = WriterLock(path).acquire()
         except (UnsafeNameError, LockedError) as e:

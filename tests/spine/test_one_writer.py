@@ -86,7 +86,7 @@ def test_a_second_writer_is_refused_naming_the_first(tmp_path):
         assert sorted(p.name for p in out.iterdir()) == [
             "S01.h5",
             "S01.h5.lock",
-            "steerlab-run.pid",
+            "steerlab-run-S01.pid",
         ]
         assert first.poll() is None
     finally:
