@@ -372,6 +372,10 @@ def _start_values(f: np.ndarray, H: np.ndarray, I_i: float) -> dict[str, float]:
     w_top = 2 * np.pi * f[-1]
     b_c = z.imag / w_top if z.imag > 0 else 1.0
     k_c = z.real if z.real > 0 else 10.0 / abs(H[0])
+    # Two springs in series are each stiffer than the pair (1/|Ĥ| at the lowest band): a
+    # contact start below that (a noisy top band) would put the whole start grid in the basin
+    # where the two springs swap roles.
+    k_c = max(k_c, 3.0 / abs(H[0]))
     # Low band: both springs in series, |Ĥ| ≈ 1/k_c + 1/k_i.
     inv_ki = abs(H[0]) - 1.0 / k_c
     k_i = 1.0 / inv_ki if inv_ki > 0.2 * abs(H[0]) else 2.0 / abs(H[0])
