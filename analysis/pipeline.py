@@ -963,6 +963,17 @@ UNIDENTIFIED_RULE = (
     "statistics (the subject drops out of that parameter's repeated-measures tests)"
 )
 WEIGHTING_DISAGREEMENT_SEMS = 2.0  # |default − other| > this × the larger SEM: "disagree"
+
+
+def weightings_disagree(a: float, b: float, sem_a: float | None, sem_b: float | None) -> bool:
+    """Whether two estimates of one parameter (default and other weighting) differ by more than
+    :data:`WEIGHTING_DISAGREEMENT_SEMS` × the larger of their SEMs (no finite SEM: no verdict)."""
+    sems = [float("nan") if x is None else float(x) for x in (sem_a, sem_b)]
+    if not any(math.isfinite(x) for x in sems):
+        return False
+    return abs(a - b) > WEIGHTING_DISAGREEMENT_SEMS * float(np.nanmax(sems))
+
+
 INERTIA_POORLY_DETERMINED = 0.3  # relative SEM of a subject's I_i above which we say so
 
 
@@ -1074,8 +1085,7 @@ class StudyResults:
                 va, vb = getattr(a.params, n), getattr(b.params, n)
                 sa, sb = a.sems.get(n, float("nan")), b.sems.get(n, float("nan"))
                 row["parameters"][n] = {main: va, f"{main}_sem": sa, other: vb, f"{other}_sem": sb}
-                lim = WEIGHTING_DISAGREEMENT_SEMS * np.nanmax([sa, sb])
-                if math.isfinite(lim) and abs(va - vb) > lim:
+                if weightings_disagree(va, vb, sa, sb):
                     row["disagree"].append(n)
             rows.append(row)
         return {

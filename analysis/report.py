@@ -42,6 +42,7 @@ from analysis.pipeline import (
     StudyResults,
     analyse_directory,
     json_clean,
+    weightings_disagree,
     wheel_used_sentence,
 )
 from analysis.study import AnalysisOptions, ProgressCallback
@@ -853,13 +854,7 @@ def _weighting_section(res: StudyResults) -> str:
         for n in c.fit.free:
             a, b = getattr(c.fit.params, n), getattr(c.fit_compare.params, n)
             sa, sb = c.fit.sems.get(n), c.fit_compare.sems.get(n)
-            mark = (
-                ' class="bad"'
-                if sa is not None
-                and sb is not None
-                and abs(a - b) > WEIGHTING_DISAGREEMENT_SEMS * max(sa, sb)
-                else ""
-            )
+            mark = ' class="bad"' if weightings_disagree(a, b, sa, sb) else ""
             row.append(f"<span{mark}>{_num(a)} ± {_num(sa)}<br>{_num(b)} ± {_num(sb)}</span>")
         row += [
             f"{_fixed(c.fit.fit_percent, 1)}<br>{_fixed(c.fit_compare.fit_percent, 1)}",

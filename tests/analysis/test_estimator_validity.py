@@ -254,3 +254,14 @@ def test_a_noisy_top_band_cannot_start_the_contact_spring_below_the_series_stiff
     fit = fit_arm(_frf(arm, remnant_sd=0.3, seed=7), IDEAL)
     assert fit.params.k_c == pytest.approx(arm["k_c"], rel=0.2)
     assert fit.params.k_i == pytest.approx(arm["k_i"], rel=0.2)
+
+
+def test_the_weighting_disagreement_rule():
+    from analysis.pipeline import WEIGHTING_DISAGREEMENT_SEMS, weightings_disagree
+
+    k = WEIGHTING_DISAGREEMENT_SEMS
+    assert weightings_disagree(10.0, 10.0 + 1.01 * k, 1.0, 0.5)  # beyond k × the larger SEM
+    assert not weightings_disagree(10.0, 10.0 + 0.99 * k, 1.0, 0.5)
+    assert not weightings_disagree(10.0, 10.0 + 0.99 * k, 0.5, 1.0)  # order does not matter
+    assert weightings_disagree(10.0, 10.0 + 1.01 * k, float("nan"), 1.0)  # the finite one counts
+    assert not weightings_disagree(10.0, 99.0, None, float("nan"))  # no SEM: no verdict
