@@ -20,11 +20,11 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from analysis.armfit import arm_admittance
-from analysis.lpv import admittance_response
-from analysis.periods import PeriodSelection
-from analysis.pipeline import PARAMETER_UNITS, StudyResults, leave_one_out_models
-from protocols.records import TrialRecord
+from steerlab.analysis.armfit import arm_admittance
+from steerlab.analysis.lpv import admittance_response
+from steerlab.analysis.periods import PeriodSelection
+from steerlab.analysis.pipeline import PARAMETER_UNITS, StudyResults, leave_one_out_models
+from steerlab.protocols.records import TrialRecord
 
 DPI = 96
 FREE_PARAMETERS = ("b_i", "k_i", "b_c", "k_c")

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import special, stats
 
-from analysis.periods import (
+from steerlab.analysis.periods import (
     DEFAULT_DETECT_BELOW_MAX_DB,
     DEFAULT_DETECT_FLOOR_DB,
     DEFAULT_MIN_RUN_IN_S,
@@ -56,7 +56,7 @@ from analysis.periods import (
     find_excitation,
     select_periods,
 )
-from protocols.records import TrialRecord
+from steerlab.protocols.records import TrialRecord
 
 DEFAULT_NOISE_BINS_PER_SIDE = 2  # the paper's design leaves two free bins between low bands
 # Kernel width (SD, in decades of frequency) of the noise smoothing: about ±5 bands of the

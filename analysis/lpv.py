@@ -216,7 +216,7 @@ def select_operating_points(
 
 def default_frequencies_hz() -> np.ndarray:
     """Centres of the 31 double bands of the default perturbation (0.08–20 Hz)."""
-    from protocols.perturbation import PerturbationSpec, band_start_bins
+    from steerlab.protocols.perturbation import PerturbationSpec, band_start_bins
 
     spec = PerturbationSpec()
     return (band_start_bins(spec) + 0.5) / spec.period_s

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from analysis.lpv import PARAMETER_NAMES, OperatingPoint, PhysicalLPV
+from steerlab.analysis.lpv import PARAMETER_NAMES, OperatingPoint, PhysicalLPV
 
 DEFAULT_ORDER = 2  # the paper's polynomial order
 

@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocols.perturbation import PerturbationDesign, period_samples
-from protocols.records import TrialRecord
+from steerlab.protocols.perturbation import PerturbationDesign, period_samples
+from steerlab.protocols.records import TrialRecord
 
 DEFAULT_PERIOD_S = 45.0  # the paper's period; used only when a record carries no design
 DEFAULT_MIN_RUN_IN_S = 2.0

@@ -38,8 +38,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats as sps
 
-from analysis.armfit import ArmFit
-from analysis.lpv import (
+from steerlab.analysis.armfit import ArmFit
+from steerlab.analysis.lpv import (
     DEFAULT_EXCLUSIONS,
     METHODS,
     SCHEDULING_VARIABLE,
@@ -51,23 +51,23 @@ from analysis.lpv import (
     as_operating_points,
     build_lpv,
 )
-from analysis.stats import (
+from steerlab.analysis.stats import (
     PairwiseResult,
     RMAnovaResult,
     pairwise_tests,
     prepare_wide,
     rm_anova,
 )
-from analysis.strict_json import json_clean
-from analysis.study import (
+from steerlab.analysis.strict_json import json_clean
+from steerlab.analysis.study import (
     PAPER_CONDITION_ORDER,
     AnalysisOptions,
     ProgressCallback,
     StudyAnalysis,
     analyze_study,
 )
-from protocols.datafile import DataFileError, SessionFile, session_files, software_version
-from protocols.records import TrialRecord
+from steerlab.protocols.datafile import DataFileError, SessionFile, session_files, software_version
+from steerlab.protocols.records import TrialRecord
 
 ALPHA = 0.05
 LPV_ORDER = 2  # the paper's polynomial order; higher orders overfit five points

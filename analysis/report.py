@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from analysis.pipeline import (
+from steerlab.analysis.pipeline import (
     ALPHA,
     INERTIA_POORLY_DETERMINED,
     PAPER_TABLE2,
@@ -45,8 +45,8 @@ from analysis.pipeline import (
     weightings_disagree,
     wheel_used_sentence,
 )
-from analysis.study import AnalysisOptions, ProgressCallback
-from protocols.records import TrialRecord
+from steerlab.analysis.study import AnalysisOptions, ProgressCallback
+from steerlab.protocols.records import TrialRecord
 
 RESULTS_JSON = "results.json"
 PER_SUBJECT_CSV = "per_subject.csv"
@@ -134,7 +134,7 @@ def write_report(
     tracking = None
     if any(r.time_varying for r in records):
         # Only studies with time-varying trials get the tracking section (analysis.tracking).
-        from analysis.tracking.report_section import analyse_tracking
+        from steerlab.analysis.tracking.report_section import analyse_tracking
 
         t0 = time.perf_counter()
         tracking = analyse_tracking(records)
@@ -160,8 +160,8 @@ def write_report(
 
         extra = []
         if tracking is not None:
-            from analysis import figures as F
-            from analysis.tracking.report_section import figure, html_section
+            from steerlab.analysis import figures as F
+            from steerlab.analysis.tracking.report_section import figure, html_section
 
             fig = figure(tracking) if figures else None
             uri = None
@@ -333,7 +333,7 @@ def render_figures(
     on_figure: Callable[[str], None] | None = None,
 ) -> dict[str, str | None]:
     """name → PNG data URI (None when the figure has nothing to show, e.g. no LPV model)."""
-    from analysis import figures as F
+    from steerlab.analysis import figures as F
 
     makers: dict[str, Callable[[], Any]] = {
         "time_signals": lambda: (

@@ -144,7 +144,7 @@ def hands_off_spec(stiffness_nm_per_rad: float, angle_sd_rad: float = 0.5):
     to 1.5 Hz and a tenth above; torque SD ``angle_sd_rad`` × k (on Table 1's wheel: angle SD
     about 0.25 rad, peaks about 0.6 rad, so that sin θ departs from θ and an imbalance is seen
     apart from the stiffness; the motor command stays near 4 N·m)."""
-    from protocols.perturbation import PerturbationSpec
+    from steerlab.protocols.perturbation import PerturbationSpec
 
     return PerturbationSpec(
         period_s=10.0,
@@ -901,8 +901,8 @@ def identify(
     trial: str | None = None,
 ) -> tuple[RigFit, list[Check]]:
     """Read, check, fit and write: the whole of ``steerlab rig-check --recording``."""
-    from hardware.rig import load_rig
-    from protocols.protocol import load_protocol
+    from steerlab.hardware.rig import load_rig
+    from steerlab.protocols.protocol import load_protocol
 
     rig = load_rig(rig_path)
     tol = Tolerances.from_rig(rig)
@@ -950,7 +950,7 @@ def measured_world(rig_model: dict, world, wheel, fs_hz: float):
     """(WorldConfig, VirtualWheel) for the simulator with the measured wheel: inertia, rendered
     damping and stiffness, friction, imbalance, and the actuator lag as the simulated loop's
     discrete lag with the same continuous-time equivalent (:func:`lag_time_constant`)."""
-    from hardware.sim.mechanisms import ActuatorLag, CoulombFriction, WheelImbalance
+    from steerlab.hardware.sim.mechanisms import ActuatorLag, CoulombFriction, WheelImbalance
 
     v = {k: float(rig_model[k]["value"]) for k in PARAMS}
     eps = float((rig_model.get("model") or {}).get("friction_eps_rad_s", EPS_RAD_S))

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from analysis.armfit import (
+from steerlab.analysis.armfit import (
     ArmFit,
     FitOptions,
     JointArmFit,
@@ -35,7 +35,7 @@ from analysis.armfit import (
     fit_arm_joint,
     vaf_percent,
 )
-from analysis.frf import (
+from steerlab.analysis.frf import (
     DEFAULT_NOISE_BINS_PER_SIDE,
     FrequencyResponse,
     GroupFrequencyResponse,
@@ -44,12 +44,12 @@ from analysis.frf import (
     group_frequency_response,
     trial_spectra,
 )
-from analysis.periods import (
+from steerlab.analysis.periods import (
     DEFAULT_DETECT_BELOW_MAX_DB,
     DEFAULT_DETECT_FLOOR_DB,
     DEFAULT_MIN_RUN_IN_S,
 )
-from protocols.records import (
+from steerlab.protocols.records import (
     STATUS_ABORTED,
     STATUS_COMPLETE,
     STATUS_DAMAGED,

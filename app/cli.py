@@ -35,7 +35,7 @@ class Progress:
 
 
 def _cmd_simulate(a: argparse.Namespace) -> int:
-    from app.simulate import simulate_study
+    from steerlab.app.simulate import simulate_study
 
     t0 = time.monotonic()
     res = simulate_study(
@@ -56,14 +56,14 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
 
 
 def _world_from_model(path: str):
-    from hardware.sim.model_file import load_world_model
+    from steerlab.hardware.sim.model_file import load_world_model
 
     return load_world_model(path)
 
 
 def _cmd_rig_check(a: argparse.Namespace) -> int:
-    from analysis.rigcheck import identify, summary
-    from app.rigcheck import RigCheckRunError, run_rig_check
+    from steerlab.analysis.rigcheck import identify, summary
+    from steerlab.app.rigcheck import RigCheckRunError, run_rig_check
 
     if a.recording:
         if a.overwrite or a.periods is not None:
@@ -88,7 +88,7 @@ def _cmd_rig_check(a: argparse.Namespace) -> int:
 
 
 def _cmd_export(a: argparse.Namespace) -> int:
-    from protocols.interchange import export_study
+    from steerlab.protocols.interchange import export_study
 
     paths = export_study(a.dir, a.out, overwrite=a.overwrite, blind=a.blind)
     for line in export_study.last_skipped:
@@ -98,7 +98,7 @@ def _cmd_export(a: argparse.Namespace) -> int:
 
 
 def _cmd_import(a: argparse.Namespace) -> int:
-    from protocols.interchange import import_study
+    from steerlab.protocols.interchange import import_study
 
     paths = import_study(a.csvdir, a.out, overwrite=a.overwrite)
     print(f"imported into {len(paths)} session file(s) in {a.out}")
@@ -106,9 +106,9 @@ def _cmd_import(a: argparse.Namespace) -> int:
 
 
 def _cmd_report(a: argparse.Namespace) -> int:
-    from analysis.armfit import FitOptions
-    from analysis.report import write_report
-    from analysis.study import AnalysisOptions
+    from steerlab.analysis.armfit import FitOptions
+    from steerlab.analysis.report import write_report
+    from steerlab.analysis.study import AnalysisOptions
 
     try:
         fit = FitOptions(weighting=a.weighting, inertia=a.inertia, I_i=a.inertia_value)
@@ -122,8 +122,8 @@ def _cmd_report(a: argparse.Namespace) -> int:
 
 
 def _cmd_run(a: argparse.Namespace) -> int:
-    from app.run import run_session
-    from protocols.engine import State
+    from steerlab.app.run import run_session
+    from steerlab.protocols.engine import State
 
     state = run_session(
         a.rig,
@@ -138,7 +138,7 @@ def _cmd_run(a: argparse.Namespace) -> int:
 
 
 def _cmd_stop(a: argparse.Namespace) -> int:
-    from app.run import stop_running
+    from steerlab.app.run import stop_running
 
     target = stop_running(a.out, subject=a.subject, rig=a.rig)
     print(f"emergency stop sent to the session of {target.describe()} in {a.out}")
@@ -146,7 +146,7 @@ def _cmd_stop(a: argparse.Namespace) -> int:
 
 
 def _cmd_diagnose(a: argparse.Namespace) -> int:
-    from analysis.diagnosis import run_diagnosis
+    from steerlab.analysis.diagnosis import run_diagnosis
 
     result = run_diagnosis(a.dir, a.out, jobs=a.jobs, progress=Progress("diagnose"), model=a.model)
     print(result.summary())
@@ -154,7 +154,7 @@ def _cmd_diagnose(a: argparse.Namespace) -> int:
 
 
 def _cmd_gui(a: argparse.Namespace) -> int:
-    from app.gui.main import run_gui
+    from steerlab.app.gui.main import run_gui
 
     return run_gui(rig=a.rig, out=a.out, protocol=a.protocol)
 
@@ -165,6 +165,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Experiment control, data acquisition and analysis for steering-wheel "
         "admittance studies (Pronker et al. 2017).",
     )
+    from steerlab import __version__
+
+    p.add_argument("--version", action="version", version=f"steerlab {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("simulate", help="run the protocol for N simulated subjects")
@@ -283,7 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from app.errors import is_user_error
+    from steerlab.app.errors import is_user_error
 
     try:
         return args.func(args)

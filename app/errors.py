@@ -9,20 +9,20 @@ from __future__ import annotations
 import sys
 
 _USER_ERRORS = (
-    ("app.simulate", "SimulateError"),
-    ("app.run", "RunError"),
-    ("protocols.datafile", "DataFileError"),
-    ("protocols.writelock", "LockedError"),
-    ("protocols.names", "UnsafeNameError"),
-    ("protocols.interchange", "InterchangeError"),
-    ("protocols.protocol", "ProtocolError"),
-    ("analysis.report", "ReportError"),
-    ("analysis.study", "NoAnalysableTrialError"),
-    ("analysis.diagnosis", "DiagnosisError"),
-    ("hardware.can.config", "ConfigError"),
-    ("hardware.live", "RigError"),
-    ("analysis.rigcheck", "RigCheckError"),
-    ("app.rigcheck", "RigCheckRunError"),
+    ("steerlab.app.simulate", "SimulateError"),
+    ("steerlab.app.run", "RunError"),
+    ("steerlab.protocols.datafile", "DataFileError"),
+    ("steerlab.protocols.writelock", "LockedError"),
+    ("steerlab.protocols.names", "UnsafeNameError"),
+    ("steerlab.protocols.interchange", "InterchangeError"),
+    ("steerlab.protocols.protocol", "ProtocolError"),
+    ("steerlab.analysis.report", "ReportError"),
+    ("steerlab.analysis.study", "NoAnalysableTrialError"),
+    ("steerlab.analysis.diagnosis", "DiagnosisError"),
+    ("steerlab.hardware.can.config", "ConfigError"),
+    ("steerlab.hardware.live", "RigError"),
+    ("steerlab.analysis.rigcheck", "RigCheckError"),
+    ("steerlab.app.rigcheck", "RigCheckRunError"),
 )
 
 

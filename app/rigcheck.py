@@ -15,10 +15,10 @@ import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from protocols.engine import SessionEngine, State
-from protocols.events import TrialStarted
-from protocols.protocol import Condition, Protocol, TrialTiming, load_protocol
-from protocols.session import SessionPlan, TrialSetup, TrialSpec, build_plan
+from steerlab.protocols.engine import SessionEngine, State
+from steerlab.protocols.events import TrialStarted
+from steerlab.protocols.protocol import Condition, Protocol, TrialTiming, load_protocol
+from steerlab.protocols.session import SessionPlan, TrialSetup, TrialSpec, build_plan
 
 SESSION_FILE = "rigcheck.h5"
 CONDITION = "HANDS_OFF"
@@ -43,7 +43,7 @@ class HandsOffPlan(SessionPlan):
 
 def hands_off_protocol(protocol: Protocol, periods: int = 3) -> Protocol:
     """The protocol's loop rate and wheel; a rig-check multisine; one hands-off trial."""
-    from analysis.rigcheck import hands_off_spec
+    from steerlab.analysis.rigcheck import hands_off_spec
 
     if periods < 1:
         raise RigCheckRunError(f"--periods must be ≥ 1, got {periods}")
@@ -100,8 +100,8 @@ def record_hands_off(
 ) -> State:
     """Run the plan's trial through the engine into a new session file at ``path``;
     ``ended`` collects the TrialEnded events (status, reason)."""
-    from protocols.datafile import SessionWriter
-    from protocols.events import TrialEnded
+    from steerlab.protocols.datafile import SessionWriter
+    from steerlab.protocols.events import TrialEnded
 
     engine = SessionEngine(plan, loop)
     writer = SessionWriter(path, extra_attributes=extra)
@@ -126,9 +126,9 @@ def run_rig_check(
     """The hands-off trial on the rig (in real time, in the loop's own process), then the fit."""
     import signal
 
-    from analysis.rigcheck import identify
-    from hardware.live import ProcessLoop
-    from hardware.rig import load_rig
+    from steerlab.analysis.rigcheck import identify
+    from steerlab.hardware.live import ProcessLoop
+    from steerlab.hardware.rig import load_rig
 
     protocol = load_protocol(protocol_path)
     rig = load_rig(rig_path)
@@ -142,7 +142,7 @@ def run_rig_check(
     if path.exists():
         if not overwrite:
             raise RigCheckRunError(f"{path}: exists already; pass --overwrite to replace it")
-        from analysis.rigcheck import FIGURE, INDEX_HTML, RIG_JSON
+        from steerlab.analysis.rigcheck import FIGURE, INDEX_HTML, RIG_JSON
 
         for old in (path, out / RIG_JSON, out / INDEX_HTML, out / FIGURE):
             old.unlink(missing_ok=True)  # no earlier result may pass for this one

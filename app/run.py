@@ -20,22 +20,22 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-from hardware.live import ProcessLoop
-from hardware.realtime import realtime_warnings
-from hardware.rig import load_rig
-from protocols.datafile import (
+from steerlab.hardware.live import ProcessLoop
+from steerlab.hardware.realtime import realtime_warnings
+from steerlab.hardware.rig import load_rig
+from steerlab.protocols.datafile import (
     SessionFile,
     SessionWriter,
     check_free_space,
     creating_path,
     session_bytes,
 )
-from protocols.engine import SessionEngine, State
-from protocols.events import StateChanged, TrialEnded, TrialStarted
-from protocols.names import inside
-from protocols.protocol import load_protocol
-from protocols.session import build_plan, subject_id
-from protocols.writelock import LockedError, WriterLock
+from steerlab.protocols.engine import SessionEngine, State
+from steerlab.protocols.events import StateChanged, TrialEnded, TrialStarted
+from steerlab.protocols.names import inside
+from steerlab.protocols.protocol import load_protocol
+from steerlab.protocols.session import build_plan, subject_id
+from steerlab.protocols.writelock import LockedError, WriterLock
 
 PIDFILE_GLOB = "steerlab-run-*.pid"
 
@@ -155,7 +155,7 @@ def run_session(
         )
     last_check = None
     if rig_check is not None:
-        from analysis.rigcheck import load_rig_model, rig_check_record
+        from steerlab.analysis.rigcheck import load_rig_model, rig_check_record
 
         last_check = rig_check_record(load_rig_model(rig_check))  # before the rig comes up
     plan = build_plan(protocol, subject_number)

@@ -9,10 +9,10 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
-from hardware.sim.physiology import PopulationSpread, make_population
-from hardware.sim.rig import simulated_rig
-from hardware.sim.world import WorldConfig
-from protocols.datafile import (
+from steerlab.hardware.sim.physiology import PopulationSpread, make_population
+from steerlab.hardware.sim.rig import simulated_rig
+from steerlab.hardware.sim.world import WorldConfig
+from steerlab.protocols.datafile import (
     FORMAT,
     DataFileError,
     SessionFile,
@@ -22,12 +22,12 @@ from protocols.datafile import (
     session_bytes,
     session_files,
 )
-from protocols.engine import SessionEngine, State
-from protocols.events import TrialEnded
-from protocols.names import inside
-from protocols.protocol import Protocol, VirtualWheel, load_protocol
-from protocols.session import build_plan, subject_id
-from protocols.writelock import LockedError, WriterLock
+from steerlab.protocols.engine import SessionEngine, State
+from steerlab.protocols.events import TrialEnded
+from steerlab.protocols.names import inside
+from steerlab.protocols.protocol import Protocol, VirtualWheel, load_protocol
+from steerlab.protocols.session import build_plan, subject_id
+from steerlab.protocols.writelock import LockedError, WriterLock
 
 
 class SimulateError(ValueError):
@@ -140,7 +140,7 @@ def wheel_record(protocol: Protocol, rig_model: dict | None) -> dict:
             "damping_Nms_per_rad": w.damping_nms_per_rad,
             "stiffness_Nm_per_rad": w.stiffness_nm_per_rad,
         }
-    from analysis.rigcheck import PARAMS
+    from steerlab.analysis.rigcheck import PARAMS
 
     return {
         "source": "measured",
@@ -248,7 +248,7 @@ def _simulate_locked(
     world = world or WorldConfig(fs_hz=protocol.loop_rate_hz)
     wheel, measured = None, None
     if rig_model is not None:
-        from analysis.rigcheck import load_rig_model, measured_world
+        from steerlab.analysis.rigcheck import load_rig_model, measured_world
 
         measured = load_rig_model(rig_model)
         world, wheel = measured_world(measured, world, protocol.wheel, protocol.loop_rate_hz)

@@ -25,7 +25,7 @@ def run(argv: list[str]) -> int:
     if name not in available():
         print(f"unknown benchmark {name!r}; available: {', '.join(available())}", file=sys.stderr)
         return 2
-    result = importlib.import_module(f"benchmarks.{name}").main(rest)
+    result = importlib.import_module(f"steerlab.benchmarks.{name}").main(rest)
     print(json.dumps({"benchmark": name, **result}))
     return 0
 

@@ -27,7 +27,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from benchmarks.machine import machine
+from steerlab.benchmarks.machine import machine
 
 MODERATE = {
     "reflex_delay": 6.0,
@@ -70,7 +70,7 @@ CONDITIONS = ("RT", "BT12", "PT")
 
 def mechanisms_for(name: str | None, magnitude: float):
     """The world's mechanisms with one of them at ``magnitude`` (its main parameter)."""
-    from hardware.sim import mechanisms as m
+    from steerlab.hardware.sim import mechanisms as m
 
     if name is None:
         return m.Mechanisms()
@@ -108,9 +108,9 @@ def make_study(
     fs_hz: float = 200.0,
 ) -> Path:
     """Simulate, export, import; return the directory of imported session files."""
-    from app.simulate import simulate_study
-    from hardware.sim.world import WorldConfig
-    from protocols.interchange import export_study, import_study
+    from steerlab.app.simulate import simulate_study
+    from steerlab.hardware.sim.world import WorldConfig
+    from steerlab.protocols.interchange import export_study, import_study
 
     root.mkdir(parents=True, exist_ok=True)
     proto = root / "p.toml"
@@ -126,7 +126,7 @@ def make_study(
 
 def run_case(args: tuple) -> dict:
     mechanism, magnitude, seed, n_subjects = args
-    from analysis.diagnosis import run_diagnosis
+    from steerlab.analysis.diagnosis import run_diagnosis
 
     with tempfile.TemporaryDirectory() as tmp:
         data = make_study(Path(tmp) / "s", mechanism, magnitude, seed=seed, n_subjects=n_subjects)

@@ -27,13 +27,13 @@ import time
 
 import numpy as np
 
-from analysis.armfit import BOUNDS
-from analysis.study import AnalysisOptions, analyze_study
-from benchmarks.machine import machine, peak_rss_mb
-from hardware.sim.physiology import NOMINAL, ConditionBehaviour
-from hardware.sim.world import World, WorldConfig
-from protocols.perturbation import design_multisine
-from protocols.records import TrialRecord
+from steerlab.analysis.armfit import BOUNDS
+from steerlab.analysis.study import AnalysisOptions, analyze_study
+from steerlab.benchmarks.machine import machine, peak_rss_mb
+from steerlab.hardware.sim.physiology import NOMINAL, ConditionBehaviour
+from steerlab.hardware.sim.world import World, WorldConfig
+from steerlab.protocols.perturbation import design_multisine
+from steerlab.protocols.records import TrialRecord
 
 FREE = ("I_i", "b_i", "k_i", "b_c", "k_c")
 RUN_IN_S, FADE_IN_S, FADE_OUT_S = 5.0, 1.0, 1.0  # the paper protocol's trial timing

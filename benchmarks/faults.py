@@ -30,15 +30,15 @@ import threading
 import time
 from pathlib import Path
 
-from benchmarks.machine import machine
-from hardware.live import ZEROING_S, ProcessLoop
-from hardware.rig import load_rig
-from hardware.sim.lab import LabProcess, host_rig_text
-from protocols import events as ev
-from protocols.datafile import SessionFile, SessionWriter
-from protocols.engine import SessionEngine
-from protocols.protocol import parse_protocol
-from protocols.session import build_plan
+from steerlab.benchmarks.machine import machine
+from steerlab.hardware.live import ZEROING_S, ProcessLoop
+from steerlab.hardware.rig import load_rig
+from steerlab.hardware.sim.lab import LabProcess, host_rig_text
+from steerlab.protocols import events as ev
+from steerlab.protocols.datafile import SessionFile, SessionWriter
+from steerlab.protocols.engine import SessionEngine
+from steerlab.protocols.protocol import parse_protocol
+from steerlab.protocols.session import build_plan
 
 ROOT = Path(__file__).resolve().parents[1]
 SIMULATED_RIG = ROOT / "hardware" / "rigs" / "simulated.toml"

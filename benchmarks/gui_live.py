@@ -24,7 +24,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from benchmarks.machine import machine, peak_rss_mb
+from steerlab.benchmarks.machine import machine, peak_rss_mb
 
 GOAL_FPS = 30.0
 DEFAULT_RIG = str(Path(__file__).resolve().parents[1] / "hardware" / "rigs" / "simulated.toml")
@@ -45,11 +45,11 @@ def _figures(end, n_planned: int) -> dict:
 
 
 def headless(protocol, out: Path, rig_path: str | None) -> dict:
-    from app.gui.rig import make_rig_loop
-    from protocols import events as ev
-    from protocols.datafile import SessionWriter
-    from protocols.engine import SessionEngine
-    from protocols.session import build_plan
+    from steerlab.app.gui.rig import make_rig_loop
+    from steerlab.protocols import events as ev
+    from steerlab.protocols.datafile import SessionWriter
+    from steerlab.protocols.engine import SessionEngine
+    from steerlab.protocols.session import build_plan
 
     plan = build_plan(protocol, 1)
     plan = replace(plan, trials=plan.trials[:1])
@@ -73,9 +73,9 @@ def with_gui(
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     from PySide6.QtWidgets import QApplication
 
-    from app.gui.main import configure_process
-    from app.gui.session_window import ExperimenterWindow
-    from protocols import events as ev
+    from steerlab.app.gui.main import configure_process
+    from steerlab.app.gui.session_window import ExperimenterWindow
+    from steerlab.protocols import events as ev
 
     configure_process()
     if switch_interval_s is not None:
@@ -144,7 +144,7 @@ def main(argv: list[str]) -> dict:
     a = ap.parse_args(argv)
     if a.in_process:
         a.rig = None
-    from protocols.protocol import load_protocol
+    from steerlab.protocols.protocol import load_protocol
 
     protocol = load_protocol(a.protocol)
     trial_s = protocol.trial_samples / protocol.loop_rate_hz

@@ -14,12 +14,12 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from benchmarks.machine import machine
-from hardware.live import ProcessLoop
-from protocols.datafile import SessionFile, SessionWriter
-from protocols.engine import SessionEngine
-from protocols.protocol import load_protocol
-from protocols.session import build_plan
+from steerlab.benchmarks.machine import machine
+from steerlab.hardware.live import ProcessLoop
+from steerlab.protocols.datafile import SessionFile, SessionWriter
+from steerlab.protocols.engine import SessionEngine
+from steerlab.protocols.protocol import load_protocol
+from steerlab.protocols.session import build_plan
 
 
 def main(argv: list[str]) -> dict:

@@ -841,7 +841,7 @@ def generate_study(
     design = Multisine.design(pert_seed, period_s=opts.period_s)
     drift = next((m for m in opts.mechanisms if m["kind"] == "drift"), None)
     truth = {
-        "world": "benchmarks.otherworld",
+        "world": "steerlab.benchmarks.otherworld",
         "seed": seed,
         "options": asdict(opts),
         "wheel_rendered": WHEEL,
@@ -1024,7 +1024,7 @@ def report_recovery(study_dir: str | Path, csv_dir: str | Path, truth: dict) -> 
     """Run Steerlab on the study, as a user would (its CLI, default options), and compare.
 
     This is the consumer side: it imports Steerlab's CLI; the world above does not."""
-    from app.cli import main as steerlab
+    from steerlab.app.cli import main as steerlab
 
     root = Path(study_dir)
     t0 = time.perf_counter()

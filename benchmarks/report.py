@@ -23,14 +23,14 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.machine import machine, peak_rss_mb
+from steerlab.benchmarks.machine import machine, peak_rss_mb
 
 GOAL_ANALYSIS_S = 5.0
 GOAL_REPORT_S = 30.0
 
 
 def _timed_report(study: Path, out: Path, *, jobs: int, figures: bool) -> tuple[float, dict]:
-    from analysis.report import write_report
+    from steerlab.analysis.report import write_report
 
     t0 = time.perf_counter()
     res = write_report(study, out, jobs=jobs, figures=figures)
@@ -46,8 +46,8 @@ def main(argv: list[str]) -> dict:
     a = ap.parse_args(argv)
 
     # Imports and matplotlib's font cache are start-up costs, not the report's: pay them first.
-    import analysis.figures  # noqa: F401
-    import analysis.report  # noqa: F401
+    import steerlab.analysis.figures  # noqa: F401
+    import steerlab.analysis.report  # noqa: F401
 
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
@@ -56,7 +56,7 @@ def main(argv: list[str]) -> dict:
             study = Path(a.study)
             simulated_here = False
         else:
-            from app.simulate import simulate_study
+            from steerlab.app.simulate import simulate_study
 
             study = tmpd / "study"
             simulate_study(18, study, seed=0, jobs=2)

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.machine import machine, peak_rss_mb
+from steerlab.benchmarks.machine import machine, peak_rss_mb
 
 BASE_REMNANT = 0.25  # otherworld's default remnant SD relative to the perturbation's
 PARAMS = ("I_i", "b_i", "k_i", "b_c", "k_c")
@@ -67,10 +67,10 @@ WORLDS: dict[str, dict] = {
 
 def run_world(name: str, overrides: dict, subjects: int, seed: int) -> dict:
     """Generate, import and analyse one world; errors per parameter against its truth."""
-    from analysis.pipeline import load_directory
-    from analysis.study import AnalysisOptions, analyze_study
-    from benchmarks.otherworld import generate_study
-    from protocols.interchange import import_study
+    from steerlab.analysis.pipeline import load_directory
+    from steerlab.analysis.study import AnalysisOptions, analyze_study
+    from steerlab.benchmarks.otherworld import generate_study
+    from steerlab.protocols.interchange import import_study
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="steerlab-robust-") as tmp:

@@ -10,9 +10,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from app.simulate import simulate_study
-from benchmarks.machine import machine, peak_rss_mb
-from protocols.datafile import SessionFile
+from steerlab.app.simulate import simulate_study
+from steerlab.benchmarks.machine import machine, peak_rss_mb
+from steerlab.protocols.datafile import SessionFile
 
 GOAL_SPEEDUP = 500.0
 

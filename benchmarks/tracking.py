@@ -31,21 +31,21 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.tracking import (
+from steerlab.analysis.tracking import (
     Calibration,
     TrackingTrial,
     default_estimators,
     score,
 )
-from analysis.tracking.metrics import StepSettling
-from benchmarks.machine import machine
-from hardware.sim.physiology import make_population
-from hardware.sim.rig import SimulatedSubject, simulated_rig
-from hardware.sim.world import TRUTH_CHANNELS, WorldConfig
-from protocols.engine import LoopControl
-from protocols.protocol import Protocol, load_protocol
-from protocols.records import TrialRecord
-from protocols.session import build_plan
+from steerlab.analysis.tracking.metrics import StepSettling
+from steerlab.benchmarks.machine import machine
+from steerlab.hardware.sim.physiology import make_population
+from steerlab.hardware.sim.rig import SimulatedSubject, simulated_rig
+from steerlab.hardware.sim.world import TRUTH_CHANNELS, WorldConfig
+from steerlab.protocols.engine import LoopControl
+from steerlab.protocols.protocol import Protocol, load_protocol
+from steerlab.protocols.records import TrialRecord
+from steerlab.protocols.session import build_plan
 
 ROOT = Path(__file__).resolve().parents[1]
 PROTOCOL = ROOT / "protocols" / "tracking.toml"

@@ -16,12 +16,12 @@ import math
 
 import numpy as np
 
-from analysis.tracking import Calibration, TrackingTrial
-from analysis.tracking.base import TRACKED
-from analysis.tracking.kalman import X_D, EKFConfig, KalmanCore
-from benchmarks.machine import machine
-from benchmarks.tracking import PROTOCOL, simulate_subject
-from protocols.protocol import load_protocol
+from steerlab.analysis.tracking import Calibration, TrackingTrial
+from steerlab.analysis.tracking.base import TRACKED
+from steerlab.analysis.tracking.kalman import X_D, EKFConfig, KalmanCore
+from steerlab.benchmarks.machine import machine
+from steerlab.benchmarks.tracking import PROTOCOL, simulate_subject
+from steerlab.protocols.protocol import load_protocol
 
 TIMES_S = (0.25, 0.5, 1.0, 2.0, 4.0)
 # No random walk, no relaxation, no shrinkage: the offsets are constants to be learnt.

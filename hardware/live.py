@@ -27,18 +27,18 @@ import can
 import numpy as np
 import serial
 
-from hardware.can import (
+from steerlab.hardware.can import (
     CiA402Drive,
     SharedPlant,
     SimulatedDrive,
     SimulatedTorqueSensor,
     open_bus,
 )
-from hardware.glove.unit import SerialGloveUnit
-from hardware.loop import DEFAULT_BLOCK_S, LOOP_CHANNELS, SPIN_S, DeviceLoop
-from hardware.rig import RigConfig, load_rig
-from protocols.engine import LoopControl, TrialFault
-from protocols.session import TrialSetup
+from steerlab.hardware.glove.unit import SerialGloveUnit
+from steerlab.hardware.loop import DEFAULT_BLOCK_S, LOOP_CHANNELS, SPIN_S, DeviceLoop
+from steerlab.hardware.rig import RigConfig, load_rig
+from steerlab.protocols.engine import LoopControl, TrialFault
+from steerlab.protocols.session import TrialSetup
 
 ZEROING_S = 0.3
 
@@ -106,9 +106,9 @@ class RigDevices:
         try:
             port = rig.glove.port
             if rig.simulated:
-                from hardware.glove.simulated import SimulatedGloveUnit
-                from hardware.sim.physiology import make_population
-                from hardware.sim.rig import simulated_rig
+                from steerlab.hardware.glove.simulated import SimulatedGloveUnit
+                from steerlab.hardware.sim.physiology import make_population
+                from steerlab.hardware.sim.rig import simulated_rig
 
                 sim = rig.simulation
                 phys = make_population(subject_number, seed=sim.seed)[subject_number - 1]
@@ -314,7 +314,7 @@ def _worker(
 ) -> None:
     import gc
 
-    from hardware.realtime import tune_process
+    from steerlab.hardware.realtime import tune_process
 
     # Before the rig's threads start, so that they inherit the priority (the simulated drive
     # node answering each SYNC is one of them).
@@ -425,7 +425,7 @@ class ProcessLoop:
             name="steerlab-loop",
             daemon=True,
         )
-        from hardware.realtime import single_threaded_math_for_children
+        from steerlab.hardware.realtime import single_threaded_math_for_children
 
         with single_threaded_math_for_children():
             self._proc.start()

@@ -31,10 +31,10 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from hardware.interfaces import Display, GloveUnit, TorqueSensor, WheelDrive
-from hardware.safety import SafetyLimits, loop_command, nonfinite_input, warm_up
-from protocols.engine import LoopControl, TrialFault
-from protocols.session import TrialSetup
+from steerlab.hardware.interfaces import Display, GloveUnit, TorqueSensor, WheelDrive
+from steerlab.hardware.safety import SafetyLimits, loop_command, nonfinite_input, warm_up
+from steerlab.protocols.engine import LoopControl, TrialFault
+from steerlab.protocols.session import TrialSetup
 
 LOOP_CHANNELS = (
     "time_s",

@@ -14,9 +14,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from hardware.can.config import ConfigError, DriveConfig, drive_config_from_dict
-from hardware.glove.calibration import CalibrationError, GloveCalibration
-from hardware.safety import SafetyLimits
+from steerlab.hardware.can.config import ConfigError, DriveConfig, drive_config_from_dict
+from steerlab.hardware.glove.calibration import CalibrationError, GloveCalibration
+from steerlab.hardware.safety import SafetyLimits
 
 SIMULATED_RIG = "simulated.toml"
 SIMULATED_PORT = "simulated"
@@ -65,8 +65,13 @@ class SimulationConfig:
 
     def world_config(self, fs_hz: float):
         """The simulated world's configuration for this rig."""
-        from hardware.sim.mechanisms import ActuatorLag, CoulombFriction, Mechanisms, WheelImbalance
-        from hardware.sim.world import WorldConfig
+        from steerlab.hardware.sim.mechanisms import (
+            ActuatorLag,
+            CoulombFriction,
+            Mechanisms,
+            WheelImbalance,
+        )
+        from steerlab.hardware.sim.world import WorldConfig
 
         mech = Mechanisms(
             coulomb_friction=CoulombFriction(self.coulomb_nm),
@@ -108,7 +113,8 @@ class RigConfig:
 
 def _read(path: str | Path | None) -> tuple[str, dict[str, Any]]:
     if path is None:
-        text = resources.files("hardware").joinpath("rigs", SIMULATED_RIG).read_text("utf-8")
+        rigs = resources.files("steerlab.hardware").joinpath("rigs")
+        text = rigs.joinpath(SIMULATED_RIG).read_text("utf-8")
         name = str(Path(__file__).parent / "rigs" / SIMULATED_RIG)
     else:
         name = str(path)

@@ -22,12 +22,12 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from protocols import events as ev
-from protocols.engine import TrialFault
-from protocols.h5status import SuperblockError, clear_status_flags
-from protocols.names import UnsafeNameError, check_name
-from protocols.perturbation import PerturbationDesign
-from protocols.records import (
+from steerlab.protocols import events as ev
+from steerlab.protocols.engine import TrialFault
+from steerlab.protocols.h5status import SuperblockError, clear_status_flags
+from steerlab.protocols.names import UnsafeNameError, check_name
+from steerlab.protocols.perturbation import PerturbationDesign
+from steerlab.protocols.records import (
     CORE_CHANNELS,
     STATUS_ABORTED,
     STATUS_COMPLETE,
@@ -36,7 +36,7 @@ from protocols.records import (
     STATUS_SUPERSEDED,
     TrialRecord,
 )
-from protocols.writelock import LockedError, WriterLock, live_writer
+from steerlab.protocols.writelock import LockedError, WriterLock, live_writer
 
 log = logging.getLogger(__name__)
 

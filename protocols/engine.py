@@ -18,9 +18,9 @@ from collections.abc import Callable, Iterator
 from enum import StrEnum
 from typing import Protocol
 
-from protocols import events as ev
-from protocols.records import STATUS_ABORTED, STATUS_COMPLETE, STATUS_SUPERSEDED
-from protocols.session import SessionPlan, TrialSetup, TrialSpec
+from steerlab.protocols import events as ev
+from steerlab.protocols.records import STATUS_ABORTED, STATUS_COMPLETE, STATUS_SUPERSEDED
+from steerlab.protocols.session import SessionPlan, TrialSetup, TrialSpec
 
 STOP_GRACE_S = 2.0
 

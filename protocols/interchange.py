@@ -26,7 +26,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from protocols.datafile import (
+from steerlab.protocols.datafile import (
     FORMAT,
     FORMAT_VERSION,
     MARK_DTYPE,
@@ -40,9 +40,9 @@ from protocols.datafile import (
     session_files,
     software_version,
 )
-from protocols.names import UnsafeNameError, check_name, inside
-from protocols.perturbation import PerturbationDesign
-from protocols.records import (
+from steerlab.protocols.names import UnsafeNameError, check_name, inside
+from steerlab.protocols.perturbation import PerturbationDesign
+from steerlab.protocols.records import (
     CORE_CHANNELS,
     STATUS_ABORTED,
     STATUS_COMPLETE,
@@ -51,7 +51,7 @@ from protocols.records import (
     STATUS_SUPERSEDED,
     TrialRecord,
 )
-from protocols.writelock import LockedError, WriterLock
+from steerlab.protocols.writelock import LockedError, WriterLock
 
 REQUIRED_META = ("subject", "condition", "repetition", "fs_hz")
 MIN_FS_HZ = 100.0

@@ -12,8 +12,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from protocols.names import UnsafeNameError, check_name
-from protocols.perturbation import PerturbationSpec
+from steerlab.protocols.names import UnsafeNameError, check_name
+from steerlab.protocols.perturbation import PerturbationSpec
 
 DEFAULT_PROTOCOL = "pronker2017.toml"
 
@@ -438,7 +438,8 @@ def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
 def load_protocol(path: str | Path | None = None) -> Protocol:
     """Read a protocol file; None gives the default (the paper's) protocol."""
     if path is None:
-        text = resources.files("protocols").joinpath(DEFAULT_PROTOCOL).read_text(encoding="utf-8")
+        default = resources.files("steerlab.protocols").joinpath(DEFAULT_PROTOCOL)
+        text = default.read_text(encoding="utf-8")
         return parse_protocol(text, DEFAULT_PROTOCOL)
     p = Path(path)
     try:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocols.perturbation import PerturbationDesign
+from steerlab.protocols.perturbation import PerturbationDesign
 
 CORE_CHANNELS = (
     "time_s",

@@ -8,9 +8,9 @@ from functools import cached_property
 
 import numpy as np
 
-from protocols.latin_square import condition_order
-from protocols.perturbation import PerturbationDesign, design_multisine
-from protocols.protocol import Condition, Protocol
+from steerlab.protocols.latin_square import condition_order
+from steerlab.protocols.perturbation import PerturbationDesign, design_multisine
+from steerlab.protocols.protocol import Condition, Protocol
 
 DISPLAY_RAMP_STEP_S = 0.05  # how often a ramping boundary is redrawn on the subject's display
 

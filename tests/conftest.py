@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from protocols.protocol import load_protocol, parse_protocol  # noqa: E402
+from steerlab.protocols.protocol import load_protocol, parse_protocol  # noqa: E402
 from tests.helpers import fast_protocol_text  # noqa: E402
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from hardware.can import ConfigError, load_drive_config
+from steerlab.hardware.can import ConfigError, load_drive_config
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -5,9 +5,9 @@ Public API: :func:`run_diagnosis` (returns a :class:`DiagnosisResult`), :class:`
 (bad input, a ``DataFileError``), and :data:`CANDIDATE_NAMES`.
 """
 
-from analysis.diagnosis.candidates import ALL_NAMES, CANDIDATE_NAMES
-from analysis.diagnosis.data import DiagnosisError
-from analysis.diagnosis.run import DiagnosisResult, run_diagnosis
+from steerlab.analysis.diagnosis.candidates import ALL_NAMES, CANDIDATE_NAMES
+from steerlab.analysis.diagnosis.data import DiagnosisError
+from steerlab.analysis.diagnosis.run import DiagnosisResult, run_diagnosis
 
 __all__ = [
     "ALL_NAMES",

@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-from hardware.sim.mechanisms import Mechanisms
+from steerlab.hardware.sim.mechanisms import Mechanisms
 
 
 @dataclass(frozen=True)

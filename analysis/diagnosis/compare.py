@@ -28,13 +28,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.armfit import fit_percent
-from analysis.diagnosis.data import TrialData
-from analysis.diagnosis.fit import NoiseModel
-from analysis.diagnosis.simulate import simulated_segment
-from analysis.study import _condition_key
-from hardware.sim.mechanisms import Mechanisms
-from hardware.sim.physiology import ArmParams
+from steerlab.analysis.armfit import fit_percent
+from steerlab.analysis.diagnosis.data import TrialData
+from steerlab.analysis.diagnosis.fit import NoiseModel
+from steerlab.analysis.diagnosis.simulate import simulated_segment
+from steerlab.analysis.study import _condition_key
+from steerlab.hardware.sim.mechanisms import Mechanisms
+from steerlab.hardware.sim.physiology import ArmParams
 
 
 def vaf(y: np.ndarray, yhat: np.ndarray) -> float:
@@ -299,7 +299,7 @@ def distortion_table(
     the cross-power Re(z₁ z₂*) of their whitened residuals (zero mean for independent noise);
     ``z`` is its z-score against zero.
     """
-    from analysis.diagnosis.fit import whitener
+    from steerlab.analysis.diagnosis.fit import whitener
 
     cells: dict[tuple[str, str], list[TrialData]] = {}
     for t in trials:

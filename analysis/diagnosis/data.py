@@ -27,19 +27,19 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
-from analysis.armfit import FitOptions, fit_arm
-from analysis.frf import TrialSpectra, frequency_response, trial_spectra
-from analysis.periods import (
+from steerlab.analysis.armfit import FitOptions, fit_arm
+from steerlab.analysis.frf import TrialSpectra, frequency_response, trial_spectra
+from steerlab.analysis.periods import (
     Excitation,
     PeriodSelection,
     find_excitation,
     record_period_s,
     select_periods,
 )
-from hardware.sim.physiology import ArmParams
-from protocols.datafile import DataFileError
-from protocols.protocol import VirtualWheel
-from protocols.records import STATUS_COMPLETE, TrialRecord
+from steerlab.hardware.sim.physiology import ArmParams
+from steerlab.protocols.datafile import DataFileError
+from steerlab.protocols.protocol import VirtualWheel
+from steerlab.protocols.records import STATUS_COMPLETE, TrialRecord
 
 # The diagnosis keeps the fit it was built and checked with (the paper's weighting, I_i held
 # at 0.1, continuous-time model): its baseline and mechanism tests are tuned to it. Moving it
@@ -299,7 +299,7 @@ class PreparedStudy:
 
     @property
     def conditions(self) -> list[str]:
-        from analysis.study import _condition_key
+        from steerlab.analysis.study import _condition_key
 
         return sorted({t.condition for t in self.trials}, key=_condition_key)
 

@@ -41,9 +41,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from analysis.diagnosis.candidates import CANDIDATES, Candidate, candidate
-from analysis.diagnosis.data import PreparedStudy, TrialData
-from analysis.diagnosis.fit import (
+from steerlab.analysis.diagnosis.candidates import CANDIDATES, Candidate, candidate
+from steerlab.analysis.diagnosis.data import PreparedStudy, TrialData
+from steerlab.analysis.diagnosis.fit import (
     FitResult,
     ModelSpec,
     NoiseModel,
@@ -51,14 +51,14 @@ from analysis.diagnosis.fit import (
     fit_model,
     noise_model,
 )
-from analysis.diagnosis.simulate import (
+from steerlab.analysis.diagnosis.simulate import (
     kernel_wheel_impedance,
     needs_remnant,
     reconstruct_remnant,
     simulated_spectra,
 )
-from hardware.sim.mechanisms import Mechanisms
-from hardware.sim.physiology import NOMINAL, ArmParams
+from steerlab.hardware.sim.mechanisms import Mechanisms
+from steerlab.hardware.sim.physiology import NOMINAL, ArmParams
 
 MIN_DBIC = 10.0  # "very strong" evidence on Kass & Raftery's scale
 MIN_HELD_OUT = 5.0  # −2 log L units, summed over the folds
@@ -94,7 +94,7 @@ class Setup:
 
 
 def _degenerate(arm: ArmParams) -> bool:
-    from analysis.armfit import BOUNDS
+    from steerlab.analysis.armfit import BOUNDS
 
     return any(
         not (1.05 * BOUNDS[n][0] < getattr(arm, n) < BOUNDS[n][1] / 1.05)
@@ -111,7 +111,7 @@ def plausible_arm(t: TrialData, model_baseline: dict | None = None) -> ArmParams
     for source in (model_baseline or {}, NOMINAL):
         if t.condition in source:
             return source[t.condition].arm
-    from analysis.diagnosis.data import FALLBACK_ARM
+    from steerlab.analysis.diagnosis.data import FALLBACK_ARM
 
     return FALLBACK_ARM
 

@@ -50,12 +50,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from analysis.armfit import BOUNDS as ARM_BOUNDS
-from analysis.diagnosis.candidates import Candidate
-from analysis.diagnosis.data import TRANSIENT_ORDER, TrialData, transient_projector
-from analysis.diagnosis.simulate import simulated_spectra
-from hardware.sim.mechanisms import Mechanisms
-from hardware.sim.physiology import ArmParams
+from steerlab.analysis.armfit import BOUNDS as ARM_BOUNDS
+from steerlab.analysis.diagnosis.candidates import Candidate
+from steerlab.analysis.diagnosis.data import TRANSIENT_ORDER, TrialData, transient_projector
+from steerlab.analysis.diagnosis.simulate import simulated_spectra
+from steerlab.hardware.sim.mechanisms import Mechanisms
+from steerlab.hardware.sim.physiology import ArmParams
 
 ARM_FREE = ("b_i", "k_i", "b_c", "k_c")
 ARM_STEP = 1e-3  # forward-difference step in log(parameter)

@@ -18,8 +18,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from analysis.diagnosis.candidates import CANDIDATES
-from analysis.study import _condition_key
+from steerlab.analysis.diagnosis.candidates import CANDIDATES
+from steerlab.analysis.study import _condition_key
 
 DPI = 90
 MODEL_STYLE = {
@@ -414,7 +414,7 @@ def _vaf_table(result) -> str:
 
 def write_html(path: Path, result, prep, setup, sel, drift) -> None:
     comp = result.comparison
-    from analysis.diagnosis import compare as C
+    from steerlab.analysis.diagnosis import compare as C
 
     # The example trial: where the extension changed the torque's VAF most. Only it is
     # simulated again for the figure (each trial's simulation is its own, and deterministic).

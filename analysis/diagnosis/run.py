@@ -12,11 +12,11 @@ from typing import Any
 
 import numpy as np
 
-from analysis.diagnosis import compare as C
-from analysis.diagnosis.candidates import CANDIDATE_NAMES
-from analysis.diagnosis.data import DiagnosisError, PreparedStudy, TrialData, prepare_study
-from analysis.diagnosis.drift import DriftResult, TrialStiffness, analyse_drift
-from analysis.diagnosis.engine import (
+from steerlab.analysis.diagnosis import compare as C
+from steerlab.analysis.diagnosis.candidates import CANDIDATE_NAMES
+from steerlab.analysis.diagnosis.data import DiagnosisError, PreparedStudy, TrialData, prepare_study
+from steerlab.analysis.diagnosis.drift import DriftResult, TrialStiffness, analyse_drift
+from steerlab.analysis.diagnosis.engine import (
     Selection,
     Setup,
     _limit_threads,
@@ -26,7 +26,7 @@ from analysis.diagnosis.engine import (
     select,
     set_remnants,
 )
-from analysis.diagnosis.fit import (
+from steerlab.analysis.diagnosis.fit import (
     FitResult,
     best_start_arms,
     fit_model,
@@ -34,18 +34,18 @@ from analysis.diagnosis.fit import (
     residual_vectors,
     whitened_power,
 )
-from analysis.diagnosis.simulate import remnant_spectrum_fit, simulated_spectra
-from analysis.strict_json import json_clean
-from hardware.sim.mechanisms import Drift, Mechanisms
-from hardware.sim.model_file import (
+from steerlab.analysis.diagnosis.simulate import remnant_spectrum_fit, simulated_spectra
+from steerlab.analysis.strict_json import json_clean
+from steerlab.hardware.sim.mechanisms import Drift, Mechanisms
+from steerlab.hardware.sim.model_file import (
     ARM_KEYS,
     baseline_from_model,
     mechanisms_from_model,
     read_model_file,
     world_model_text,
 )
-from hardware.sim.physiology import ArmParams
-from protocols.datafile import load_study
+from steerlab.hardware.sim.physiology import ArmParams
+from steerlab.protocols.datafile import load_study
 
 ProgressCallback = Callable[[int, int, str], None]
 
@@ -235,7 +235,7 @@ def _run(
         result.out_dir = out_dir
         result.model_path = out_dir / "model.toml"
         result.model_path.write_text(_model_text(prep, setup, sel, drift, result), "utf-8")
-        from analysis.diagnosis.report import write_html
+        from steerlab.analysis.diagnosis.report import write_html
 
         # The page shows the analysis' time; diagnosis.json gets the report's too.
         _close_timing(timing, t0, prep)

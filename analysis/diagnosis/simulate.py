@@ -19,11 +19,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from analysis.diagnosis.data import TrialData, measurement_spectra
-from hardware.sim.mechanisms import Mechanisms
-from hardware.sim.physiology import ArmParams, ConditionBehaviour
-from hardware.sim.world import NOISELESS_SENSORS as NOISELESS
-from hardware.sim.world import World, WorldConfig
+from steerlab.analysis.diagnosis.data import TrialData, measurement_spectra
+from steerlab.hardware.sim.mechanisms import Mechanisms
+from steerlab.hardware.sim.physiology import ArmParams, ConditionBehaviour
+from steerlab.hardware.sim.world import NOISELESS_SENSORS as NOISELESS
+from steerlab.hardware.sim.world import World, WorldConfig
 
 
 class ReplayBlocks:

@@ -11,7 +11,7 @@
 Calibration on the stationary conditions: :class:`Calibration`. Scores: :mod:`.metrics`.
 """
 
-from analysis.tracking.base import (
+from steerlab.analysis.tracking.base import (
     TRACKED,
     TrackedAdmittance,
     TrackingEstimator,
@@ -19,13 +19,13 @@ from analysis.tracking.base import (
     is_time_varying,
     simulate_time_varying,
 )
-from analysis.tracking.calibration import Calibration, CalibrationError
-from analysis.tracking.kalman import EKFConfig, GripInformedEKF
-from analysis.tracking.metrics import TrackingScore, score
-from analysis.tracking.rls import RecursiveLeastSquares
-from analysis.tracking.scheduled import GripScheduledLPV
-from analysis.tracking.sliding_window import SlidingWindowFRF
-from analysis.tracking.timefreq import WaveletTracker
+from steerlab.analysis.tracking.calibration import Calibration, CalibrationError
+from steerlab.analysis.tracking.kalman import EKFConfig, GripInformedEKF
+from steerlab.analysis.tracking.metrics import TrackingScore, score
+from steerlab.analysis.tracking.rls import RecursiveLeastSquares
+from steerlab.analysis.tracking.scheduled import GripScheduledLPV
+from steerlab.analysis.tracking.sliding_window import SlidingWindowFRF
+from steerlab.analysis.tracking.timefreq import WaveletTracker
 
 
 def default_estimators() -> list[TrackingEstimator]:

@@ -28,12 +28,12 @@ import numpy as np
 from numba import njit
 from scipy import signal
 
-from protocols.protocol import VirtualWheel
-from protocols.records import TrialRecord
-from protocols.session import ConditionSchedule
+from steerlab.protocols.protocol import VirtualWheel
+from steerlab.protocols.records import TrialRecord
+from steerlab.protocols.session import ConditionSchedule
 
 if TYPE_CHECKING:
-    from analysis.tracking.calibration import Calibration
+    from steerlab.analysis.tracking.calibration import Calibration
 
 TRACKED = ("b_i", "k_i", "b_c", "k_c")  # the order used in every array here
 TRUTH_KEYS = {

@@ -24,11 +24,11 @@ from typing import Any
 import numpy as np
 from scipy import signal
 
-from analysis.lpv import DEFAULT_EXCLUSIONS, OperatingPoint, PhysicalLPV
-from analysis.lpv_results import LPVLoadError, points_from_document
-from analysis.tracking.base import TRACKED, closed_loop_response
-from protocols.protocol import VirtualWheel
-from protocols.records import TrialRecord
+from steerlab.analysis.lpv import DEFAULT_EXCLUSIONS, OperatingPoint, PhysicalLPV
+from steerlab.analysis.lpv_results import LPVLoadError, points_from_document
+from steerlab.analysis.tracking.base import TRACKED, closed_loop_response
+from steerlab.protocols.protocol import VirtualWheel
+from steerlab.protocols.records import TrialRecord
 
 LPV_ORDER = 2
 
@@ -200,7 +200,7 @@ class Calibration:
         One subject: that subject's own points. Several: the group points (μ = median).
         Time-varying trials among the records are skipped by the study.
         """
-        from analysis.study import AnalysisOptions, analyze_study
+        from steerlab.analysis.study import AnalysisOptions, analyze_study
 
         # The default fit; the side-by-side second weighting is for reports, not needed here.
         study = analyze_study(list(records), options=AnalysisOptions(compare_weightings=False))

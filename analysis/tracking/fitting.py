@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
-from analysis.tracking.base import TRACKED
+from steerlab.analysis.tracking.base import TRACKED
 
 PRIOR_SD_LOG = 2.0
 

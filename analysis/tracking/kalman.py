@@ -75,8 +75,8 @@ import numpy as np
 from numba import njit
 from scipy.linalg import expm
 
-from analysis.tracking.base import TrackedAdmittance, TrackingTrial, finish
-from analysis.tracking.calibration import CalibratedTracker, Calibration
+from steerlab.analysis.tracking.base import TrackedAdmittance, TrackingTrial, finish
+from steerlab.analysis.tracking.calibration import CalibratedTracker, Calibration
 
 # cfg vector
 C_I, C_H, C_IW, C_BW, C_KW, C_R1, C_R2, C_QZ = 0, 1, 2, 3, 4, 5, 6, 7

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from analysis.tracking.base import TRACKED, TrackedAdmittance, TrackingTrial
+from steerlab.analysis.tracking.base import TRACKED, TrackedAdmittance, TrackingTrial
 
 DEFAULT_TOL = 0.15
 DEFAULT_MIN_STEP = 1.3

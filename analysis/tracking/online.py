@@ -24,9 +24,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from analysis.tracking.base import TRACKED, admittance
-from analysis.tracking.calibration import Calibration
-from analysis.tracking.kalman import (
+from steerlab.analysis.tracking.base import TRACKED, admittance
+from steerlab.analysis.tracking.calibration import Calibration
+from steerlab.analysis.tracking.kalman import (
     O_MU,
     O_P,
     O_PRIOR_KI,
@@ -34,7 +34,7 @@ from analysis.tracking.kalman import (
     EKFConfig,
     KalmanCore,
 )
-from analysis.tracking.scheduled import DEFAULT_GRIP_TAU_S
+from steerlab.analysis.tracking.scheduled import DEFAULT_GRIP_TAU_S
 
 Method = Literal["grip_ekf", "lpv"]
 CHANNELS = ("perturbation_torque_Nm", "driver_torque_Nm", "wheel_angle_rad", "grip_force_N")

@@ -22,12 +22,12 @@ from typing import Any
 
 import numpy as np
 
-from analysis.tracking.base import TrackedAdmittance, TrackingTrial, is_time_varying
-from analysis.tracking.calibration import Calibration, CalibrationError, Disturbance
-from analysis.tracking.kalman import GripInformedEKF
-from analysis.tracking.metrics import TrackingScore, score
-from analysis.tracking.scheduled import GripScheduledLPV
-from protocols.records import TrialRecord
+from steerlab.analysis.tracking.base import TrackedAdmittance, TrackingTrial, is_time_varying
+from steerlab.analysis.tracking.calibration import Calibration, CalibrationError, Disturbance
+from steerlab.analysis.tracking.kalman import GripInformedEKF
+from steerlab.analysis.tracking.metrics import TrackingScore, score
+from steerlab.analysis.tracking.scheduled import GripScheduledLPV
+from steerlab.protocols.records import TrialRecord
 
 REPORT_TRACKERS = ("lpv", "grip_ekf")
 SCORE_FROM_S = 15.0

@@ -39,16 +39,16 @@ import numpy as np
 from numba import njit
 from scipy import signal
 
-from analysis.tracking.base import (
+from steerlab.analysis.tracking.base import (
     TRACKED,
     TrackedAdmittance,
     TrackingTrial,
     closed_loop_response,
     finish,
 )
-from analysis.tracking.calibration import CalibratedTracker
-from analysis.tracking.fitting import TrackFitter
-from protocols.protocol import VirtualWheel
+from steerlab.analysis.tracking.calibration import CalibratedTracker
+from steerlab.analysis.tracking.fitting import TrackFitter
+from steerlab.protocols.protocol import VirtualWheel
 
 
 def svf(x: np.ndarray, fs: float, k: int, f_filter_hz: float, f_highpass_hz: float) -> np.ndarray:

@@ -14,8 +14,8 @@ import time
 import numpy as np
 from scipy.signal import lfilter
 
-from analysis.tracking.base import TrackedAdmittance, TrackingTrial, finish
-from analysis.tracking.calibration import CalibratedTracker
+from steerlab.analysis.tracking.base import TrackedAdmittance, TrackingTrial, finish
+from steerlab.analysis.tracking.calibration import CalibratedTracker
 
 DEFAULT_GRIP_TAU_S = 0.1
 

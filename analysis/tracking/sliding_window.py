@@ -18,9 +18,9 @@ import time
 
 import numpy as np
 
-from analysis.tracking.base import TRACKED, TrackedAdmittance, TrackingTrial, finish
-from analysis.tracking.calibration import CalibratedTracker
-from analysis.tracking.fitting import TrackFitter
+from steerlab.analysis.tracking.base import TRACKED, TrackedAdmittance, TrackingTrial, finish
+from steerlab.analysis.tracking.calibration import CalibratedTracker
+from steerlab.analysis.tracking.fitting import TrackFitter
 
 
 def band_edges(f_lo: float, f_hi: float, n_bands: int) -> np.ndarray:

@@ -18,9 +18,9 @@ import time
 import numpy as np
 from scipy import signal
 
-from analysis.tracking.base import TRACKED, TrackedAdmittance, TrackingTrial, finish
-from analysis.tracking.calibration import CalibratedTracker
-from analysis.tracking.fitting import TrackFitter
+from steerlab.analysis.tracking.base import TRACKED, TrackedAdmittance, TrackingTrial, finish
+from steerlab.analysis.tracking.calibration import CalibratedTracker
+from steerlab.analysis.tracking.fitting import TrackFitter
 
 
 def morlet_transform(x: np.ndarray, fs: float, freqs: np.ndarray, n_cycles: float) -> np.ndarray:

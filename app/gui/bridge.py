@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 from PySide6.QtCore import QObject, Qt, Signal
 
-import app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
-from app.gui.livedata import LiveData
-from protocols import events as ev
+import steerlab.app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
+from steerlab.app.gui.livedata import LiveData
+from steerlab.protocols import events as ev
 
 
 @dataclass(frozen=True)

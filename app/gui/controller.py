@@ -18,14 +18,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from app.gui.rig import RigHandle, make_rig_loop
-from protocols import events as ev
-from protocols.datafile import DataFileError, SessionFile, SessionWriter, session_files
-from protocols.engine import IllegalTransition, SessionEngine, State
-from protocols.names import UnsafeNameError, check_name, inside
-from protocols.protocol import Protocol
-from protocols.session import SessionPlan, TrialSpec, build_plan, subject_id
-from protocols.writelock import LockedError, WriterLock
+from steerlab.app.gui.rig import RigHandle, make_rig_loop
+from steerlab.protocols import events as ev
+from steerlab.protocols.datafile import DataFileError, SessionFile, SessionWriter, session_files
+from steerlab.protocols.engine import IllegalTransition, SessionEngine, State
+from steerlab.protocols.names import UnsafeNameError, check_name, inside
+from steerlab.protocols.protocol import Protocol
+from steerlab.protocols.session import SessionPlan, TrialSpec, build_plan, subject_id
+from steerlab.protocols.writelock import LockedError, WriterLock
 
 #: Trial states in the trial list.
 PENDING, RUNNING, DONE, ABORTED = "pending", "running", "done", "aborted"
@@ -163,7 +163,7 @@ class SessionController:
         writes rig.json and index.html beside it."""
         from datetime import UTC, datetime
 
-        from app.rigcheck import SESSION_FILE, hands_off_plan
+        from steerlab.app.rigcheck import SESSION_FILE, hands_off_plan
 
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S")
         path = self.data_root / "rigcheck" / stamp / SESSION_FILE
@@ -174,14 +174,14 @@ class SessionController:
 
     @property
     def is_rig_check(self) -> bool:
-        from app.rigcheck import HandsOffPlan
+        from steerlab.app.rigcheck import HandsOffPlan
 
         return isinstance(self.plan, HandsOffPlan)
 
     def identify_rig_check(self):
         """Fit the rig check's recording; (RigFit, checks). Runs for a few seconds: call it off
         the GUI thread."""
-        from analysis.rigcheck import identify
+        from steerlab.analysis.rigcheck import identify
 
         if not self.is_rig_check or self.path is None:
             raise ControlError("no rig check is open")
@@ -212,7 +212,7 @@ class SessionController:
         writer = SessionWriter(path, extra_attributes=extra, lock=lock)
         self._lock = lock
         if hands_off:
-            from app.rigcheck import mark_hands_off
+            from steerlab.app.rigcheck import mark_hands_off
 
             engine.subscribe(mark_hands_off(writer))
         else:

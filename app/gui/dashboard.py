@@ -30,7 +30,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-import app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
+import steerlab.app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
 
 DEFAULT_SPAN_DEG = 30.0
 _BG = QColor("#101010")

@@ -26,11 +26,11 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-import app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
-from analysis.lpv_results import LoadedLPV, LPVLoadError, load_lpv_model
-from app.gui.livedata import LiveData
-from app.gui.plots import log_ticks
-from app.gui.tracker_feed import TrackerFeed
+import steerlab.app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
+from steerlab.analysis.lpv_results import LoadedLPV, LPVLoadError, load_lpv_model
+from steerlab.app.gui.livedata import LiveData
+from steerlab.app.gui.plots import log_ticks
+from steerlab.app.gui.tracker_feed import TrackerFeed
 
 NO_MODEL = "no LPV model loaded"
 

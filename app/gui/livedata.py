@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocols import events as ev
+from steerlab.protocols import events as ev
 
 #: Channels kept for the live plots (the loop sends more; they go to the file only).
 LIVE_CHANNELS: tuple[str, ...] = (

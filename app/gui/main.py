@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import sys
 
-from app.gui.rig import RigError, check_rig_path
-from protocols.protocol import load_protocol
+from steerlab.app.gui.rig import RigError, check_rig_path
+from steerlab.protocols.protocol import load_protocol
 
 #: The GIL switch interval while the GUI runs, s. Python's default (5 ms) lets the GUI thread
 #: hold the interpreter for up to 5 ms while the control loop waits for its next 1 ms cycle;
@@ -33,8 +33,8 @@ def run_gui(rig: str | None, out: str, protocol: str | None) -> int:
     from PySide6.QtCore import Qt
     from PySide6.QtWidgets import QApplication
 
-    from app.gui.dashboard import SubjectDashboard
-    from app.gui.session_window import ExperimenterWindow, dashboard_span
+    from steerlab.app.gui.dashboard import SubjectDashboard
+    from steerlab.app.gui.session_window import ExperimenterWindow, dashboard_span
 
     configure_process()
     app = QApplication.instance() or QApplication(sys.argv[:1])

@@ -17,8 +17,8 @@ import pyqtgraph as pg
 from PySide6.QtCore import QEvent, QObject, QTimer
 from PySide6.QtWidgets import QWidget
 
-import app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
-from app.gui.livedata import LiveData
+import steerlab.app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
+from steerlab.app.gui.livedata import LiveData
 
 
 def decimate_minmax(t: np.ndarray, y: np.ndarray, max_points: int) -> tuple[np.ndarray, ...]:

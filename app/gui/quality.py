@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocols.perturbation import PerturbationDesign
+from steerlab.protocols.perturbation import PerturbationDesign
 
 #: Below this median band coherence the trial is flagged (ours: the paper's coherence is
 #: "high except at the lowest frequencies"; 0.5 catches a slack grip or a wrong sign early).

@@ -24,14 +24,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypedDict
 
-from hardware.sim.physiology import SubjectPhysiology, make_population
-from hardware.sim.rig import simulated_rig
-from hardware.sim.world import WorldConfig
-from protocols.engine import TrialLoop
-from protocols.protocol import Protocol
+from steerlab.hardware.sim.physiology import SubjectPhysiology, make_population
+from steerlab.hardware.sim.rig import simulated_rig
+from steerlab.hardware.sim.world import WorldConfig
+from steerlab.protocols.engine import TrialLoop
+from steerlab.protocols.protocol import Protocol
 
 #: The module and class that run a lab rig's loop (in its own process).
-RIG_LOOP_MODULE = "hardware.live"
+RIG_LOOP_MODULE = "steerlab.hardware.live"
 RIG_LOOP_CLASS = "ProcessLoop"
 
 #: Samples per block the loop hands to the engine. Smaller than the headless default (50 ms)

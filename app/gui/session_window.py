@@ -38,9 +38,9 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-import app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
-from app.gui.bridge import BridgeFault, EngineBridge
-from app.gui.controller import (
+import steerlab.app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
+from steerlab.app.gui.bridge import BridgeFault, EngineBridge
+from steerlab.app.gui.controller import (
     ABORTED,
     DONE,
     RUNNING,
@@ -51,15 +51,15 @@ from app.gui.controller import (
     list_sessions,
     session_path,
 )
-from app.gui.dashboard import DEFAULT_SPAN_DEG, SubjectDashboard
-from app.gui.live_admittance import LiveAdmittancePanel
-from app.gui.livedata import LiveData
-from app.gui.plots import CoherencePlot, LivePlots
-from app.gui.quality import QualityCheck, quality_check
-from app.gui.tracker_feed import TrackerFeed
-from protocols import events as ev
-from protocols.protocol import Protocol
-from protocols.session import TrialSpec, subject_id
+from steerlab.app.gui.dashboard import DEFAULT_SPAN_DEG, SubjectDashboard
+from steerlab.app.gui.live_admittance import LiveAdmittancePanel
+from steerlab.app.gui.livedata import LiveData
+from steerlab.app.gui.plots import CoherencePlot, LivePlots
+from steerlab.app.gui.quality import QualityCheck, quality_check
+from steerlab.app.gui.tracker_feed import TrackerFeed
+from steerlab.protocols import events as ev
+from steerlab.protocols.protocol import Protocol
+from steerlab.protocols.session import TrialSpec, subject_id
 
 #: What the subject dashboard says during a rig check.
 HANDS_OFF_MESSAGE = "RIG CHECK — let go of the wheel, do not touch it"
@@ -404,7 +404,7 @@ class ExperimenterWindow(QMainWindow):
         if done.error is not None:
             self._alert(f"rig check: {done.error}")
             return
-        from analysis.rigcheck import summary
+        from steerlab.analysis.rigcheck import summary
 
         failed = [c.name for c in done.checks if not c.passed]
         verdict = "PASS" if not failed else f"FAIL ({', '.join(failed)})"

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from protocols.events import SamplesAcquired, TrialStarted
+from steerlab.protocols.events import SamplesAcquired, TrialStarted
 
 
 class TrackerFeed:
@@ -29,7 +29,7 @@ class TrackerFeed:
             if isinstance(event, TrialStarted):
                 self.tracker, self.estimate, self.error = None, None, None
                 if self.results_path is not None:
-                    from analysis.tracking.online import OnlineTracker
+                    from steerlab.analysis.tracking.online import OnlineTracker
 
                     fs = float(event.attributes["fs_hz"])
                     self.tracker = OnlineTracker.from_results(self.results_path, fs, self.method)

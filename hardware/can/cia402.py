@@ -58,7 +58,7 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-from hardware.interfaces import DriveReading
+from steerlab.hardware.interfaces import DriveReading
 
 from .config import ABORT_CONNECTION_OPTIONS, DriveConfig
 from .frames import (

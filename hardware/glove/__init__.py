@@ -11,7 +11,7 @@ The protocol is specified in docs/glove-protocol.md. The simulator lives in
 hardware.glove.simulated and is not imported here: it needs POSIX ptys, the driver does not.
 """
 
-from hardware.glove.alignment import (
+from steerlab.hardware.glove.alignment import (
     AlignedStream,
     AlignmentSummary,
     ClockFit,
@@ -19,16 +19,16 @@ from hardware.glove.alignment import (
     fit_clock,
     unwrap_device_time,
 )
-from hardware.glove.calibration import CalibrationError, GloveCalibration, HandCalibration
-from hardware.glove.decoder import (
+from steerlab.hardware.glove.calibration import CalibrationError, GloveCalibration, HandCalibration
+from steerlab.hardware.glove.decoder import (
     DecodeEvent,
     DecodeEventKind,
     DecoderStats,
     GloveDecoder,
     GloveFrame,
 )
-from hardware.glove.protocol import crc16_ccitt_false, encode_frame
-from hardware.glove.unit import GloveUnitError, GloveUnitStats, SerialGloveUnit
+from steerlab.hardware.glove.protocol import crc16_ccitt_false, encode_frame
+from steerlab.hardware.glove.unit import GloveUnitError, GloveUnitStats, SerialGloveUnit
 
 __all__ = [
     "AlignedStream",

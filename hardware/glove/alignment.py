@@ -21,7 +21,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from hardware.glove.protocol import DEVICE_TIME_MODULUS
+from steerlab.hardware.glove.protocol import DEVICE_TIME_MODULUS
 
 
 def unwrap_device_time(device_time_us: ArrayLike, modulus: int = DEVICE_TIME_MODULUS) -> NDArray:

@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from hardware.glove.protocol import FORCE_RAW_MAX
+from steerlab.hardware.glove.protocol import FORCE_RAW_MAX
 
 HANDS = ("left", "right")
 _HAND_FIELDS = ("gain_n_per_count", "offset_counts")

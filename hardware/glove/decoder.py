@@ -35,7 +35,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from enum import StrEnum
 
-from hardware.glove import protocol as p
+from steerlab.hardware.glove import protocol as p
 
 _HALF_SEQUENCE = p.SEQUENCE_MODULUS // 2
 

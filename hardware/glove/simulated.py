@@ -26,8 +26,8 @@ import tty
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
-from hardware.glove import protocol as p
-from hardware.glove.calibration import GloveCalibration
+from steerlab.hardware.glove import protocol as p
+from steerlab.hardware.glove.calibration import GloveCalibration
 
 log = logging.getLogger(__name__)
 

@@ -20,9 +20,9 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any, Protocol
 
-from hardware.glove.calibration import GloveCalibration
-from hardware.glove.decoder import DecodeEvent, DecoderStats, GloveDecoder, GloveFrame
-from hardware.interfaces import GripReading
+from steerlab.hardware.glove.calibration import GloveCalibration
+from steerlab.hardware.glove.decoder import DecodeEvent, DecoderStats, GloveDecoder, GloveFrame
+from steerlab.hardware.interfaces import GripReading
 
 log = logging.getLogger(__name__)
 

@@ -30,9 +30,9 @@ import uuid
 from dataclasses import replace
 from pathlib import Path
 
-from hardware.can.config import UDP_LOOPBACK
-from hardware.can.sim_node import SimulatedDrive
-from hardware.can.transport import open_bus
+from steerlab.hardware.can.config import UDP_LOOPBACK
+from steerlab.hardware.can.sim_node import SimulatedDrive
+from steerlab.hardware.can.transport import open_bus
 
 FAULTS = (
     "stop_heartbeat",  # the drive's own heartbeat stops (it still drives)
@@ -74,8 +74,8 @@ class SimulatedLab:
     """The drive node and glove unit of a simulated rig file, on ``channel`` (udp_loopback)."""
 
     def __init__(self, rig_path: str | None, channel: str) -> None:
-        from hardware.glove.simulated import SimulatedGloveUnit
-        from hardware.rig import load_rig
+        from steerlab.hardware.glove.simulated import SimulatedGloveUnit
+        from steerlab.hardware.rig import load_rig
 
         rig = load_rig(rig_path)
         self.config = replace(rig.drive, interface=UDP_LOOPBACK, channel=channel)
@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rig", default=None, help="a simulated rig file (default: the shipped one)")
     ap.add_argument("--channel", required=True, help="udp_loopback channel name")
     args = ap.parse_args(argv)
-    from hardware.realtime import tune_process
+    from steerlab.hardware.realtime import tune_process
 
     tune_process()  # the drive node answers each SYNC: give it what the host may have
     lab = SimulatedLab(args.rig, args.channel)
@@ -166,15 +166,19 @@ def main(argv: list[str] | None = None) -> int:
 
 
 class LabProcess:
-    """Parent's handle on ``python -m hardware.sim.lab`` (see the module docstring)."""
+    """Parent's handle on ``python -m steerlab.hardware.sim.lab`` (see the module docstring)."""
 
     def __init__(self, rig_path: str | None = None, *, start_timeout_s: float = 60.0) -> None:
         self.channel = f"steerlab-lab-{uuid.uuid4().hex[:12]}"
-        root = Path(__file__).resolve().parents[2]
-        cmd = [sys.executable, "-m", "hardware.sim.lab", "--channel", self.channel]
+        import steerlab
+
+        # The folder that holds the steerlab package (the checkout, or site-packages), so the
+        # child imports the same code whether or not it was installed.
+        root = Path(steerlab.__file__).resolve().parents[1]
+        cmd = [sys.executable, "-m", "steerlab.hardware.sim.lab", "--channel", self.channel]
         if rig_path is not None:
             cmd += ["--rig", str(rig_path)]
-        from hardware.realtime import SINGLE_THREADED_MATH
+        from steerlab.hardware.realtime import SINGLE_THREADED_MATH
 
         self.proc = subprocess.Popen(
             cmd,

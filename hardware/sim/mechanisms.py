@@ -138,7 +138,7 @@ class Mechanisms:
 
     # -- kernel slots (see hardware.sim.world) ---------------------------------------------
     def configure(self, p: np.ndarray, behaviour, fs_hz: float) -> None:
-        from hardware.sim import world as w
+        from steerlab.hardware.sim import world as w
 
         dt = 1.0 / fs_hz
         p[w.P_K3] = self.stiffness_nonlinearity.k3_nm_per_rad3

@@ -28,10 +28,10 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from hardware.sim.mechanisms import Mechanisms
-from hardware.sim.physiology import NOMINAL, ArmParams, ConditionBehaviour
-from hardware.sim.world import WorldConfig
-from protocols.protocol import ProtocolError
+from steerlab.hardware.sim.mechanisms import Mechanisms
+from steerlab.hardware.sim.physiology import NOMINAL, ArmParams, ConditionBehaviour
+from steerlab.hardware.sim.world import WorldConfig
+from steerlab.protocols.protocol import ProtocolError
 
 FORMAT = "steerlab-world-model"
 FORMAT_VERSION = 1

@@ -16,20 +16,20 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from hardware.interfaces import DriveReading, GripReading
-from hardware.loop import LOOP_CHANNELS, DeviceLoop
-from hardware.safety import SafetyLimits
-from hardware.sim.physiology import (
+from steerlab.hardware.interfaces import DriveReading, GripReading
+from steerlab.hardware.loop import LOOP_CHANNELS, DeviceLoop
+from steerlab.hardware.safety import SafetyLimits
+from steerlab.hardware.sim.physiology import (
     ArmParams,
     ConditionBehaviour,
     PopulationSpread,
     SubjectPhysiology,
 )
-from hardware.sim.schedule import DEFAULT_TAU_S, BehaviourSchedule, schedule_for
-from hardware.sim.world import TRUTH_CHANNELS, World, WorldConfig
-from protocols.engine import LoopControl, TrialFault
-from protocols.protocol import VirtualWheel
-from protocols.session import TrialSetup
+from steerlab.hardware.sim.schedule import DEFAULT_TAU_S, BehaviourSchedule, schedule_for
+from steerlab.hardware.sim.world import TRUTH_CHANNELS, World, WorldConfig
+from steerlab.protocols.engine import LoopControl, TrialFault
+from steerlab.protocols.protocol import VirtualWheel
+from steerlab.protocols.session import TrialSetup
 
 #: A hands-off trial (rig check): the arm is detached from the wheel (no contact stiffness or
 #: damping), so the wheel moves alone; the arm's own states stay at rest.

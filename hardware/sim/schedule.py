@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import lfilter
 
-from hardware.sim.physiology import ConditionBehaviour
-from protocols.session import ConditionSchedule
+from steerlab.hardware.sim.physiology import ConditionBehaviour
+from steerlab.protocols.session import ConditionSchedule
 
 # Columns of the log-behaviour table.
 ARM_COLUMNS = ("b_i", "k_i", "b_c", "k_c")  # the order of the kernel's dpar slots

@@ -32,11 +32,11 @@ from numba import njit
 from scipy.linalg import expm
 from scipy.signal import lfilter
 
-from hardware.safety import SafetyLimits, inputs_finite, loop_command
-from hardware.sim.mechanisms import Mechanisms
-from hardware.sim.physiology import ConditionBehaviour
-from hardware.sim.schedule import ARM_COLUMNS, BehaviourSchedule
-from protocols.protocol import VirtualWheel
+from steerlab.hardware.safety import SafetyLimits, inputs_finite, loop_command
+from steerlab.hardware.sim.mechanisms import Mechanisms
+from steerlab.hardware.sim.physiology import ConditionBehaviour
+from steerlab.hardware.sim.schedule import ARM_COLUMNS, BehaviourSchedule
+from steerlab.protocols.protocol import VirtualWheel
 
 # Indices into the kernel's parameter vector.
 P_KSW, P_BSW, P_QANG, P_TRES, P_KC, P_BC = 0, 1, 2, 3, 4, 5

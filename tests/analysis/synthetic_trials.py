@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import signal
 
-from protocols.perturbation import PerturbationDesign, design_multisine
-from protocols.records import TrialRecord
+from steerlab.protocols.perturbation import PerturbationDesign, design_multisine
+from steerlab.protocols.records import TrialRecord
 
 WHEEL = {"I": 0.3, "b": 2.0, "k": 4.2}
 ARM = {"I_i": 0.1, "b_i": 1.0, "k_i": 13.0, "b_c": 2.6, "k_c": 100.0}  # a BT12-like arm

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from analysis.armfit import (
+from steerlab.analysis.armfit import (
     ArmParams,
     FitOptions,
     arm_admittance,
@@ -15,7 +15,7 @@ from analysis.armfit import (
     simulate_angle,
     vaf_percent,
 )
-from analysis.frf import frequency_response, trial_spectra
+from steerlab.analysis.frf import frequency_response, trial_spectra
 from tests.analysis.synthetic_trials import ARM, admittance, make_trial
 
 # Nominal RT, BT12 and PT arms of the simulated driver: the range the fit must handle.
@@ -199,7 +199,7 @@ def test_to_dict_is_json_with_units():
 def test_inverse_variance_weighting_is_an_option_and_checked():
     import pytest as _pytest
 
-    from analysis.armfit import FitOptions
+    from steerlab.analysis.armfit import FitOptions
 
     with _pytest.raises(ValueError, match="weighting must be one of"):
         FitOptions(weighting="magic")

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from analysis.frf import (
+from steerlab.analysis.frf import (
     frequency_response,
     group_frequency_response,
     trial_spectra,
 )
-from analysis.periods import select_periods
+from steerlab.analysis.periods import select_periods
 from tests.analysis.synthetic_trials import ARM, admittance, closed_loop, default_design, make_trial
 
 

@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from analysis.periods import (
+from steerlab.analysis.periods import (
     Excitation,
     detect_excitation,
     excitation_from_design,

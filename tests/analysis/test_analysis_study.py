@@ -6,10 +6,10 @@ import json
 import numpy as np
 import pytest
 
-from analysis.armfit import FitOptions
-from analysis.periods import select_periods
-from analysis.study import AnalysisOptions, StudyAnalysis, analyze_study
-from protocols.records import STATUS_ABORTED, STATUS_INCOMPLETE, STATUS_SUPERSEDED
+from steerlab.analysis.armfit import FitOptions
+from steerlab.analysis.periods import select_periods
+from steerlab.analysis.study import AnalysisOptions, StudyAnalysis, analyze_study
+from steerlab.protocols.records import STATUS_ABORTED, STATUS_INCOMPLETE, STATUS_SUPERSEDED
 from tests.analysis.synthetic_trials import ARM, admittance, find_example, load_example, make_trial
 
 CONDITION_ARMS = {

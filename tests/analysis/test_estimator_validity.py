@@ -13,9 +13,9 @@ import json
 import numpy as np
 import pytest
 
-from analysis.armfit import FitOptions, check_fittable, fit_arm, fit_arm_joint
-from analysis.frf import frequency_response, smooth_log_spectrum, trial_spectra
-from analysis.pipeline import Check, _explain_pairs, statistics_table
+from steerlab.analysis.armfit import FitOptions, check_fittable, fit_arm, fit_arm_joint
+from steerlab.analysis.frf import frequency_response, smooth_log_spectrum, trial_spectra
+from steerlab.analysis.pipeline import Check, _explain_pairs, statistics_table
 from tests.analysis.synthetic_trials import make_trial
 
 ALL = ("I_i", "b_i", "k_i", "b_c", "k_c")
@@ -124,7 +124,7 @@ def test_default_weighting_needs_a_noise_variance_and_says_so():
 
 
 def test_unidentified_estimates_are_left_out_of_the_statistics():
-    from analysis.study import analyze_study
+    from steerlab.analysis.study import analyze_study
 
     recs = []
     for subj, k_c in (("S01", 100.0), ("S02", 2e4)):
@@ -163,8 +163,8 @@ def other_lab_study(tmp_path_factory):
     """Two subjects × three conditions from the independent simulator, I_i = 0.07 (not the
     0.1 Steerlab's simulator and old default use), 100 Hz, random start phases, through
     ``steerlab import`` (the CLI), analysed with the CLI's default report."""
-    from app.cli import main as cli
-    from benchmarks.otherworld import generate_study
+    from steerlab.app.cli import main as cli
+    from steerlab.benchmarks.otherworld import generate_study
 
     root = tmp_path_factory.mktemp("otherlab")
     truth = generate_study(
@@ -212,7 +212,7 @@ def test_sampled_data_model_removes_the_aliasing_bias():
     # sampled-data term: with it the arm comes back; without it the contact terms are biased.
     from types import SimpleNamespace
 
-    from analysis.armfit import _H, sampled_admittance
+    from steerlab.analysis.armfit import _H, sampled_admittance
 
     arm = ARMS["BT12"]
     f = np.geomspace(0.08, 20, 31)
@@ -242,7 +242,7 @@ def test_a_noisy_top_band_cannot_start_the_contact_spring_below_the_series_stiff
     # so every start had k_c ≤ 10 and the fit ended in the basin where the springs swap roles
     # (k_i 1453, k_c 4.8, χ²/dof 4.6; from the truth the cost was 6.6× lower). Two springs in
     # series are each stiffer than the pair, so the contact start is kept above 1/|Ĥ(f_low)|.
-    from analysis.armfit import _start_values
+    from steerlab.analysis.armfit import _start_values
 
     arm = ARMS["RT"]
     f = np.geomspace(0.08, 20, 29)
@@ -257,7 +257,7 @@ def test_a_noisy_top_band_cannot_start_the_contact_spring_below_the_series_stiff
 
 
 def test_the_weighting_disagreement_rule():
-    from analysis.pipeline import WEIGHTING_DISAGREEMENT_SEMS, weightings_disagree
+    from steerlab.analysis.pipeline import WEIGHTING_DISAGREEMENT_SEMS, weightings_disagree
 
     k = WEIGHTING_DISAGREEMENT_SEMS
     assert weightings_disagree(10.0, 10.0 + 1.01 * k, 1.0, 0.5)  # beyond k × the larger SEM

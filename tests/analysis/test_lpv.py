@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from analysis.lpv import (
+from steerlab.analysis.lpv import (
     DEFAULT_EXCLUSIONS,
     RT_EXCLUSION_REASON,
     DeCaignyLPV,

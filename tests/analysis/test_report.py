@@ -18,9 +18,9 @@ import pingouin as pg
 import pytest
 from scipy import stats
 
-from analysis.report import ReportError, write_report
-from app.simulate import simulate_study
-from protocols.datafile import DataFileError
+from steerlab.analysis.report import ReportError, write_report
+from steerlab.app.simulate import simulate_study
+from steerlab.protocols.datafile import DataFileError
 from tests.helpers import ROOT, fast_protocol_text
 
 # pingouin 0.7 calls a pandas API that pandas 3 deprecates; not ours to fix.
@@ -476,7 +476,7 @@ def test_a_failure_late_in_the_report_leaves_the_earlier_report(study_dir, tmp_p
     def broken(*a, **k):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr("analysis.report.html_page", broken)
+    monkeypatch.setattr("steerlab.analysis.report.html_page", broken)
     with pytest.raises(RuntimeError, match="disk full"):
         write_report(study_dir, out, figures=False)
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before

@@ -9,7 +9,7 @@ import pandas as pd
 import pingouin as pg
 import pytest
 
-from analysis.stats import mauchly, pairwise_tests, prepare_wide, rm_anova
+from steerlab.analysis.stats import mauchly, pairwise_tests, prepare_wide, rm_anova
 
 CONDS = ["RT", "BT18", "BT12", "BT8", "BT5", "PT"]
 TOL = dict(rtol=1e-6, atol=1e-9)
@@ -211,7 +211,7 @@ def test_bad_inputs_are_explained() -> None:
 
 
 def test_two_subjects_do_not_crash_the_huynh_feldt_correction():
-    from analysis.stats import epsilon_hf, rm_anova
+    from steerlab.analysis.stats import epsilon_hf, rm_anova
 
     data = np.array([[1.0, 2.0, 3.5, 4.0], [1.5, 2.5, 3.0, 5.0]])
     assert epsilon_hf(data) == 1.0
@@ -222,7 +222,7 @@ def test_two_subjects_do_not_crash_the_huynh_feldt_correction():
 def test_mauchly_with_too_few_subjects_is_not_assumed_met():
     # 2 subjects × 3 conditions: the χ² correction factor is 0, the test is undefined. It must
     # not crash (a small imported study still gets its report) and must not assume sphericity.
-    from analysis.stats import mauchly
+    from steerlab.analysis.stats import mauchly
 
     s = mauchly(np.array([[1.0, 2.0, 3.5], [1.2, 2.5, 3.0]]))
     assert np.isnan(s.p) and not s.met

@@ -17,9 +17,9 @@ from pathlib import Path
 import h5py
 import pytest
 
-from analysis.diagnosis import run_diagnosis
-from hardware.sim import mechanisms as m
-from hardware.sim.world import WorldConfig
+from steerlab.analysis.diagnosis import run_diagnosis
+from steerlab.hardware.sim import mechanisms as m
+from steerlab.hardware.sim.world import WorldConfig
 from tests.helpers import fast_protocol_text
 
 CONDITIONS = ("RT", "BT12", "PT")
@@ -48,8 +48,8 @@ def protocol(conditions=CONDITIONS) -> str:
 
 
 def hidden_study(root: Path, mech: m.Mechanisms, seed: int, n_subjects: int = 1) -> Path:
-    from app.simulate import simulate_study
-    from protocols.interchange import export_study, import_study
+    from steerlab.app.simulate import simulate_study
+    from steerlab.protocols.interchange import export_study, import_study
 
     (root / "p.toml").write_text(protocol())
     world = WorldConfig(fs_hz=200.0, mechanisms=mech)
@@ -114,8 +114,8 @@ def test_an_effect_outside_the_candidates_is_unexplained(tmp_path_factory):
     """A torque sensor reading 10 % high: no candidate models a gain error."""
     import numpy as np
 
-    from app.simulate import simulate_study
-    from protocols.interchange import export_study, import_study
+    from steerlab.app.simulate import simulate_study
+    from steerlab.protocols.interchange import export_study, import_study
 
     root = tmp_path_factory.mktemp("run")
     (root / "p.toml").write_text(protocol())

@@ -8,16 +8,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.diagnosis import DiagnosisError, run_diagnosis
-from analysis.diagnosis.data import prepare_study
-from analysis.diagnosis.simulate import NOISELESS, ReplayBlocks
-from app.cli import main as cli_main
-from app.simulate import simulate_study
-from hardware.sim import mechanisms as m
-from hardware.sim.physiology import NOMINAL
-from hardware.sim.world import NoiseBlocks, World, WorldConfig
-from protocols.datafile import load_study
-from protocols.interchange import export_study, import_study
+from steerlab.analysis.diagnosis import DiagnosisError, run_diagnosis
+from steerlab.analysis.diagnosis.data import prepare_study
+from steerlab.analysis.diagnosis.simulate import NOISELESS, ReplayBlocks
+from steerlab.app.cli import main as cli_main
+from steerlab.app.simulate import simulate_study
+from steerlab.hardware.sim import mechanisms as m
+from steerlab.hardware.sim.physiology import NOMINAL
+from steerlab.hardware.sim.world import NoiseBlocks, World, WorldConfig
+from steerlab.protocols.datafile import load_study
+from steerlab.protocols.interchange import export_study, import_study
 from tests.helpers import fast_protocol_text
 
 

@@ -10,18 +10,18 @@ from pathlib import Path
 import h5py
 import pytest
 
-from analysis.diagnosis import run_diagnosis
-from app.simulate import simulate_study
-from hardware.sim import mechanisms as m
-from hardware.sim.model_file import (
+from steerlab.analysis.diagnosis import run_diagnosis
+from steerlab.app.simulate import simulate_study
+from steerlab.hardware.sim import mechanisms as m
+from steerlab.hardware.sim.model_file import (
     ModelFileError,
     ModelWorldConfig,
     load_world_model,
     world_model_text,
 )
-from hardware.sim.physiology import NOMINAL, make_population
-from hardware.sim.world import WorldConfig
-from protocols.interchange import export_study, import_study
+from steerlab.hardware.sim.physiology import NOMINAL, make_population
+from steerlab.hardware.sim.world import WorldConfig
+from steerlab.protocols.interchange import export_study, import_study
 from tests.helpers import fast_protocol_text
 
 CONDITIONS = ("RT", "BT12", "PT")

@@ -14,19 +14,19 @@ import numpy as np
 import pytest
 from PySide6.QtCore import Qt
 
-from app.gui.bridge import EngineBridge
-from app.gui.controller import WorkerFinished
-from app.gui.dashboard import SubjectDashboard
-from app.gui.live_admittance import NO_MODEL, LiveAdmittancePanel
-from app.gui.livedata import LiveData
-from app.gui.main import run_gui
-from app.gui.rig import RigError, make_rig_loop
-from app.gui.session_window import ExperimenterWindow
-from protocols import events as ev
-from protocols.datafile import SessionFile, SessionWriter
-from protocols.engine import SessionEngine
-from protocols.protocol import load_protocol, parse_protocol
-from protocols.session import build_plan
+from steerlab.app.gui.bridge import EngineBridge
+from steerlab.app.gui.controller import WorkerFinished
+from steerlab.app.gui.dashboard import SubjectDashboard
+from steerlab.app.gui.live_admittance import NO_MODEL, LiveAdmittancePanel
+from steerlab.app.gui.livedata import LiveData
+from steerlab.app.gui.main import run_gui
+from steerlab.app.gui.rig import RigError, make_rig_loop
+from steerlab.app.gui.session_window import ExperimenterWindow
+from steerlab.protocols import events as ev
+from steerlab.protocols.datafile import SessionFile, SessionWriter
+from steerlab.protocols.engine import SessionEngine
+from steerlab.protocols.protocol import load_protocol, parse_protocol
+from steerlab.protocols.session import build_plan
 from tests.helpers import ROOT, fast_protocol_text
 
 # -- threads -----------------------------------------------------------------------------------
@@ -392,7 +392,7 @@ def results_json(path) -> None:
 
 
 def test_live_admittance_panel(qtbot, tmp_path):
-    from analysis.lpv import PhysicalLPV
+    from steerlab.analysis.lpv import PhysicalLPV
 
     live = LiveData()
     p = LiveAdmittancePanel(live)
@@ -455,7 +455,7 @@ def test_unknown_rig_is_a_clear_error(tmp_path, capsys):
 def test_pyside_refcount_workaround_is_in_place():
     import sys
 
-    from app.gui import qt_compat
+    from steerlab.app.gui import qt_compat
 
     if sys.version_info < (3, 12) and qt_compat.has_refcount_bug():
         # PySide6 6.12 on 3.11 loses a reference to None per void call: the singletons must

@@ -8,8 +8,8 @@ import json
 
 import h5py
 
-from analysis.rigcheck import PARAMS
-from app.gui.session_window import HANDS_OFF_MESSAGE, RigCheckDone
+from steerlab.analysis.rigcheck import PARAMS
+from steerlab.app.gui.session_window import HANDS_OFF_MESSAGE, RigCheckDone
 from tests.gui.test_gui import (  # noqa: F401 (fixtures)
     click,
     no_thread_left_running,

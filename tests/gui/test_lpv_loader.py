@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from analysis.lpv import PhysicalLPV
-from analysis.lpv_results import LPVLoadError, load_lpv_model, lpv_from_document
+from steerlab.analysis.lpv import PhysicalLPV
+from steerlab.analysis.lpv_results import LPVLoadError, load_lpv_model, lpv_from_document
 
 P = {"I_i": 0.02, "b_i": 1.5, "k_i": 25.0, "b_c": 4.0, "k_c": 500.0}
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ("hardware", "protocols", "analysis")
-QT = ("PySide6", "PySide2", "PyQt5", "PyQt6", "shiboken6", "pyqtgraph", "qtpy", "app.gui")
+PACKAGES = ("steerlab.hardware", "steerlab.protocols", "steerlab.analysis")
+QT = ("PySide6", "PySide2", "PyQt5", "PyQt6", "shiboken6", "pyqtgraph", "qtpy", "steerlab.app.gui")
 
 
 def _imports(path: Path) -> set[str]:
@@ -35,7 +35,7 @@ def _is_qt(name: str) -> bool:
 
 @pytest.mark.parametrize("package", PACKAGES)
 def test_no_source_file_imports_qt(package):
-    files = sorted((ROOT / package).rglob("*.py"))
+    files = sorted((ROOT / package.removeprefix("steerlab.")).rglob("*.py"))
     assert files
     bad = {str(f.relative_to(ROOT)): sorted(i for i in _imports(f) if _is_qt(i)) for f in files}
     assert {k: v for k, v in bad.items() if v} == {}
@@ -53,7 +53,7 @@ for pkg in {PACKAGES!r}:
         except Exception as e:  # reported below; a module mid-edit must not hide the check
             failed[info.name] = repr(e)
 qt = sorted(m for m in sys.modules if m.split(".")[0] in {{"PySide6", "PySide2", "PyQt5",
-            "PyQt6", "shiboken6", "pyqtgraph", "qtpy"}} or m.startswith("app.gui"))
+            "PyQt6", "shiboken6", "pyqtgraph", "qtpy"}} or m.startswith("steerlab.app.gui"))
 print(json.dumps({{"qt": qt, "failed": failed, "n": len(sys.modules)}}))
 """
     env = {"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin", "MPLBACKEND": ""}

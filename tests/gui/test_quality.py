@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from app.gui.quality import quality_check
-from protocols.protocol import parse_protocol
-from protocols.session import build_plan
+from steerlab.app.gui.quality import quality_check
+from steerlab.protocols.protocol import parse_protocol
+from steerlab.protocols.session import build_plan
 from tests.helpers import fast_protocol_text
 
 

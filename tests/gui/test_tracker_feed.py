@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.gui.tracker_feed import TrackerFeed
-from hardware.sim.physiology import make_population
-from hardware.sim.rig import simulated_rig
-from hardware.sim.world import WorldConfig
-from protocols.engine import SessionEngine
-from protocols.session import build_plan
+from steerlab.app.gui.tracker_feed import TrackerFeed
+from steerlab.hardware.sim.physiology import make_population
+from steerlab.hardware.sim.rig import simulated_rig
+from steerlab.hardware.sim.world import WorldConfig
+from steerlab.protocols.engine import SessionEngine
+from steerlab.protocols.session import build_plan
 
 
 def _results(path, subject) -> None:

@@ -10,7 +10,7 @@ from dataclasses import replace
 
 import can
 
-from hardware.can import DriveConfig, SafetyConfig
+from steerlab.hardware.can import DriveConfig, SafetyConfig
 
 U8, U16, U32 = "2f", "2b", "23"  # expedited download of 1, 2, 4 bytes (CiA 301)
 

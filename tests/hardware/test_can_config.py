@@ -9,7 +9,7 @@ from pathlib import Path
 import can
 import pytest
 
-from hardware.can import (
+from steerlab.hardware.can import (
     CiA402Drive,
     ConfigError,
     DriveConfig,

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from hardware.can import (
+from steerlab.hardware.can import (
     CiA402Drive,
     DriveConfig,
     DriveEnableError,
@@ -26,7 +26,7 @@ from hardware.can import (
     State402,
     load_drive_config,
 )
-from hardware.interfaces import TorqueSensor, WheelDrive
+from steerlab.hardware.interfaces import TorqueSensor, WheelDrive
 from tests.hardware.can_wire import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]

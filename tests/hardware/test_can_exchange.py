@@ -13,7 +13,7 @@ import uuid
 import can
 import pytest
 
-from hardware.can import CiA402Drive, DriveConfig, SimulatedDrive, State402
+from steerlab.hardware.can import CiA402Drive, DriveConfig, SimulatedDrive, State402
 from tests.hardware.can_wire import (
     HOST_HEARTBEAT,
     U8,

@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hardware.can import CiA402Drive, DriveConfig, DriveScaling, SafetyConfig, State402
-from hardware.can.frames import (
+from steerlab.hardware.can import CiA402Drive, DriveConfig, DriveScaling, SafetyConfig, State402
+from steerlab.hardware.can.frames import (
     RPDO1,
     TPDO1,
     VELOCITY_ACTUAL_OBJ,

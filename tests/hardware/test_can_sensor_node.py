@@ -21,7 +21,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hardware.can import (
+from steerlab.hardware.can import (
     CiA402Drive,
     DriveConfig,
     DriveEnableError,
@@ -37,7 +37,7 @@ from hardware.can import (
     driver_filters,
     load_drive_config,
 )
-from hardware.interfaces import TorqueSensor
+from steerlab.hardware.interfaces import TorqueSensor
 from tests.hardware import can_wire
 from tests.hardware.can_wire import (
     HOST_HEARTBEAT,
@@ -751,11 +751,11 @@ boundary_deg = 0.0
 
 
 def test_simulated_rig_with_a_sensor_node_runs_a_trial(tmp_path):
-    from hardware.live import RigDevices
-    from hardware.rig import load_rig
-    from protocols.engine import LoopControl
-    from protocols.protocol import parse_protocol
-    from protocols.session import build_plan
+    from steerlab.hardware.live import RigDevices
+    from steerlab.hardware.rig import load_rig
+    from steerlab.protocols.engine import LoopControl
+    from steerlab.protocols.protocol import parse_protocol
+    from steerlab.protocols.session import build_plan
 
     text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
     text = edit(text, 'source = "pdo"', 'source = "node"\nnode_id = 2')

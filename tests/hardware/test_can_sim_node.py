@@ -13,7 +13,7 @@ from canopen.sdo import SdoAbortedError
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hardware.can import DriveConfig, SafetyConfig, SimulatedDrive, State402
+from steerlab.hardware.can import DriveConfig, SafetyConfig, SimulatedDrive, State402
 
 NODE = 9
 

@@ -18,7 +18,7 @@ import canopen
 import pytest
 from canopen.objectdictionary import ObjectDictionary
 
-from hardware.can import CiA402Drive, ConfigError, SimulatedDrive, State402, startup_writes
+from steerlab.hardware.can import CiA402Drive, ConfigError, SimulatedDrive, State402, startup_writes
 from tests.hardware.can_wire import node5_config, wait_for
 
 HOST = 127
@@ -207,7 +207,7 @@ def test_guard_values_are_checked_at_load(change, field, words):
 
 
 def test_the_shipped_rig_asks_for_at_most_100_ms():
-    from hardware.rig import load_rig
+    from steerlab.hardware.rig import load_rig
 
     d = load_rig().drive
     assert d.host_heartbeat_timeout_ms <= 100 and d.abort_connection_option in (1, 2, 3)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
-from hardware.glove.alignment import align_zoh, fit_clock, unwrap_device_time
+from steerlab.hardware.glove.alignment import align_zoh, fit_clock, unwrap_device_time
 
 
 def test_zoh_by_hand():

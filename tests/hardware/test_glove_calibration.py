@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from hardware.glove.calibration import CalibrationError, GloveCalibration, HandCalibration
-from hardware.glove.protocol import FORCE_RAW_MAX
+from steerlab.hardware.glove.calibration import CalibrationError, GloveCalibration, HandCalibration
+from steerlab.hardware.glove.protocol import FORCE_RAW_MAX
 
 CONFIG = {
     "left": {"gain_n_per_count": 0.0025, "offset_counts": 1200},

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hardware.glove import protocol as p
-from hardware.glove.decoder import DecodeEventKind, GloveDecoder, GloveFrame
-from hardware.glove.protocol import encode_frame
+from steerlab.hardware.glove import protocol as p
+from steerlab.hardware.glove.decoder import DecodeEventKind, GloveDecoder, GloveFrame
+from steerlab.hardware.glove.protocol import encode_frame
 
 
 def frames_for(seqs, *, t0_us=0, left=100, right=200):

@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hardware.glove import protocol as p
-from hardware.glove.protocol import crc16_ccitt_false, encode_frame
+from steerlab.hardware.glove import protocol as p
+from steerlab.hardware.glove.protocol import crc16_ccitt_false, encode_frame
 
 
 def crc_bitwise(data: bytes) -> int:

@@ -10,9 +10,9 @@ from collections.abc import Callable, Iterator
 import pytest
 import serial
 
-from hardware.glove.calibration import GloveCalibration
-from hardware.glove.simulated import GloveFaults, SimulatedGloveUnit
-from hardware.glove.unit import SerialGloveUnit
+from steerlab.hardware.glove.calibration import GloveCalibration
+from steerlab.hardware.glove.simulated import GloveFaults, SimulatedGloveUnit
+from steerlab.hardware.glove.unit import SerialGloveUnit
 
 CAL = GloveCalibration.from_config(
     {

@@ -9,10 +9,10 @@ from collections.abc import Callable
 import pytest
 import serial
 
-from hardware.glove.calibration import GloveCalibration
-from hardware.glove.protocol import encode_frame
-from hardware.glove.unit import GloveUnitError, SerialGloveUnit
-from hardware.interfaces import GloveUnit, GripReading
+from steerlab.hardware.glove.calibration import GloveCalibration
+from steerlab.hardware.glove.protocol import encode_frame
+from steerlab.hardware.glove.unit import GloveUnitError, SerialGloveUnit
+from steerlab.hardware.interfaces import GloveUnit, GripReading
 
 CAL = GloveCalibration.from_config(
     {

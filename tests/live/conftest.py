@@ -6,9 +6,9 @@ from dataclasses import replace
 
 import pytest
 
-from hardware.live import RigDevices
-from hardware.rig import load_rig
-from protocols.protocol import parse_protocol
+from steerlab.hardware.live import RigDevices
+from steerlab.hardware.rig import load_rig
+from steerlab.protocols.protocol import parse_protocol
 
 SHORT_PROTOCOL = """
 name = "short-test"

@@ -12,12 +12,12 @@ import time
 import numpy as np
 import pytest
 
-from hardware.live import ProcessLoop
-from hardware.sim.lab import LabProcess, host_rig_text
-from protocols import events as ev
-from protocols.datafile import SessionFile, SessionWriter
-from protocols.engine import SessionEngine, State
-from protocols.session import build_plan
+from steerlab.hardware.live import ProcessLoop
+from steerlab.hardware.sim.lab import LabProcess, host_rig_text
+from steerlab.protocols import events as ev
+from steerlab.protocols.datafile import SessionFile, SessionWriter
+from steerlab.protocols.engine import SessionEngine, State
+from steerlab.protocols.session import build_plan
 from tests.helpers import ROOT
 
 MARGIN_S = 0.5  # a loaded test machine; the timing goal is in benchmarks/faults.py
@@ -43,7 +43,7 @@ def host_rig(lab, tmp_path):
 
 
 def test_the_host_rig_sees_a_lab(host_rig, lab):
-    from hardware.rig import load_rig
+    from steerlab.hardware.rig import load_rig
 
     rig = load_rig(host_rig)
     assert not rig.simulated and rig.drive.interface == "udp_loopback"
@@ -103,7 +103,7 @@ def test_sigkill_of_the_host_leaves_zero_torque_at_the_drive(
 
 def test_the_fault_benchmark_measures_at_the_drive(tmp_path):
     """One row of ``python -m benchmarks faults`` (EMCY: the drive faults, torque off at once)."""
-    from benchmarks.faults import FAULTS, run_fault
+    from steerlab.benchmarks.faults import FAULTS, run_fault
 
     (fault,) = [f for f in FAULTS if f[0] == "EMCY"]
     row = run_fault(*fault, tmp_path, stall_s=0.5)
@@ -114,7 +114,7 @@ def test_the_fault_benchmark_measures_at_the_drive(tmp_path):
 
 
 def test_realtime_warnings_say_what_the_loop_did_not_get():
-    from hardware.realtime import realtime_warnings
+    from steerlab.hardware.realtime import realtime_warnings
 
     good = {"sched_fifo_priority": 20, "mlockall": True, "cpus": [0, 1]}
     assert realtime_warnings(good) == []

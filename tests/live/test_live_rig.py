@@ -10,11 +10,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hardware.loop import DeviceLoop
-from protocols import events as ev
-from protocols.datafile import SessionFile, SessionWriter
-from protocols.engine import SessionEngine, State
-from protocols.session import build_plan
+from steerlab.hardware.loop import DeviceLoop
+from steerlab.protocols import events as ev
+from steerlab.protocols.datafile import SessionFile, SessionWriter
+from steerlab.protocols.engine import SessionEngine, State
+from steerlab.protocols.session import build_plan
 from tests.hardware.can_wire import wait_for
 
 
@@ -194,10 +194,10 @@ def test_corrupted_serial_bytes_are_counted_not_fatal(devices, short_protocol, t
 def test_paused_real_time_simulated_trial_resumes_on_schedule(short_protocol):
     """The in-process simulated rig waits with its world during a pause and then carries on:
     no burst of missed cycles, no stall, a complete trial."""
-    from hardware.safety import SafetyLimits
-    from hardware.sim.physiology import make_population
-    from hardware.sim.rig import simulated_rig
-    from hardware.sim.world import WorldConfig
+    from steerlab.hardware.safety import SafetyLimits
+    from steerlab.hardware.sim.physiology import make_population
+    from steerlab.hardware.sim.rig import simulated_rig
+    from steerlab.hardware.sim.world import WorldConfig
 
     rig = simulated_rig(make_population(2, seed=1)[1], WorldConfig(fs_hz=1000.0))
     loop = rig.device_loop(realtime=True, safety=SafetyLimits(loop_stall_s=0.2))
@@ -225,9 +225,9 @@ def test_paused_real_time_simulated_trial_resumes_on_schedule(short_protocol):
 
 
 def test_redo_while_waiting_between_trials(short_protocol, tmp_path):
-    from hardware.sim.physiology import make_population
-    from hardware.sim.rig import simulated_rig
-    from hardware.sim.world import WorldConfig
+    from steerlab.hardware.sim.physiology import make_population
+    from steerlab.hardware.sim.rig import simulated_rig
+    from steerlab.hardware.sim.world import WorldConfig
 
     rig = simulated_rig(make_population(2, seed=1)[1], WorldConfig(fs_hz=1000.0))
     eng = SessionEngine(build_plan(short_protocol, 2), rig.batch_loop(), pause_between_trials=True)

@@ -15,11 +15,11 @@ import h5py
 import numpy as np
 import pytest
 
-from hardware.live import ProcessLoop, RigError
-from protocols import events as ev
-from protocols.datafile import SessionFile, SessionWriter
-from protocols.engine import SessionEngine, State
-from protocols.session import build_plan
+from steerlab.hardware.live import ProcessLoop, RigError
+from steerlab.protocols import events as ev
+from steerlab.protocols.datafile import SessionFile, SessionWriter
+from steerlab.protocols.engine import SessionEngine, State
+from steerlab.protocols.session import build_plan
 from tests.helpers import ROOT
 
 
@@ -158,7 +158,7 @@ def wait_for_samples(path, n: int, deadline: float) -> bool:
 
 def _steerlab(*args, **kw):
     return subprocess.Popen(
-        [sys.executable, "-m", "app.cli", *map(str, args)],
+        [sys.executable, "-m", "steerlab", *map(str, args)],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -219,7 +219,7 @@ def test_emergency_stop_from_the_keyboard(tmp_path, short_protocol_file, lenient
         [
             sys.executable,
             "-m",
-            "app.cli",
+            "steerlab",
             "run",
             "--subject",
             "1",

@@ -8,11 +8,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hardware.can.config import ConfigError
-from hardware.rig import load_rig
-from hardware.safety import SafetyLimits, inputs_finite, loop_command, perturbation_gain
-from hardware.sim.physiology import NOMINAL
-from hardware.sim.world import World, WorldConfig
+from steerlab.hardware.can.config import ConfigError
+from steerlab.hardware.rig import load_rig
+from steerlab.hardware.safety import SafetyLimits, inputs_finite, loop_command, perturbation_gain
+from steerlab.hardware.sim.physiology import NOMINAL
+from steerlab.hardware.sim.world import World, WorldConfig
 from tests.helpers import ROOT
 
 LIM = SafetyLimits(
@@ -139,11 +139,11 @@ def test_the_world_kernel_applies_zero_for_a_non_finite_command():
 
 
 def test_a_non_finite_perturbation_aborts_a_batch_trial(short_protocol, tmp_path):
-    from hardware.sim.physiology import make_population
-    from hardware.sim.rig import simulated_rig
-    from protocols.datafile import SessionFile, SessionWriter
-    from protocols.engine import SessionEngine
-    from protocols.session import build_plan
+    from steerlab.hardware.sim.physiology import make_population
+    from steerlab.hardware.sim.rig import simulated_rig
+    from steerlab.protocols.datafile import SessionFile, SessionWriter
+    from steerlab.protocols.engine import SessionEngine
+    from steerlab.protocols.session import build_plan
 
     rig = simulated_rig(make_population(2, seed=1)[1], WorldConfig(fs_hz=1000.0))
     loop = rig.batch_loop()

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from app.run import RunError, SessionProcess, pidfile_path, running_sessions, stop_running
-from protocols.datafile import SessionFile
+from steerlab.app.run import RunError, SessionProcess, pidfile_path, running_sessions, stop_running
+from steerlab.protocols.datafile import SessionFile
 from tests.helpers import ROOT
 from tests.live.test_process_loop import wait_for_samples
 
@@ -48,7 +48,7 @@ def children(tmp_path):
 
 
 def _pidfile_for(proc: subprocess.Popen, out: Path, subject: str, rig: str = "/r/sim.toml"):
-    from app.run import _proc_cmdline, _proc_start_ticks
+    from steerlab.app.run import _proc_cmdline, _proc_start_ticks
 
     sp = SessionProcess(
         proc.pid,
@@ -96,7 +96,7 @@ def test_a_reused_pid_is_not_signalled(tmp_path, children):
     start time (and command line) tell, and that program is left alone."""
     other, mark = children("unrelated")
     sp = SessionProcess(
-        other.pid, 12345, ["python", "-m", "app.cli", "run"], "S01", "/r", str(tmp_path),
+        other.pid, 12345, ["python", "-m", "steerlab", "run"], "S01", "/r", str(tmp_path),
         pidfile_path(tmp_path, "S01"),
     )  # fmt: skip
     sp.write_exclusive()
@@ -106,7 +106,7 @@ def test_a_reused_pid_is_not_signalled(tmp_path, children):
     time.sleep(0.2)
     assert other.poll() is None and not mark.exists()
     # the same start time but another command line: also not ours
-    from app.run import _proc_start_ticks
+    from steerlab.app.run import _proc_start_ticks
 
     sp2 = SessionProcess(
         other.pid, _proc_start_ticks(other.pid), ["steerlab", "run"], "S01", "/r",
@@ -128,7 +128,7 @@ def test_garbage_pid_file_is_stale(tmp_path):
 
 def _steerlab(*args):
     return subprocess.Popen(
-        [sys.executable, "-m", "app.cli", *map(str, args)],
+        [sys.executable, "-m", "steerlab", *map(str, args)],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

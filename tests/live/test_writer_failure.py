@@ -15,11 +15,11 @@ import time
 
 import pytest
 
-from hardware.live import ProcessLoop
-from protocols import events as ev
-from protocols.datafile import DataFileError, SessionFile, SessionWriter, check_free_space
-from protocols.engine import SessionEngine, State
-from protocols.session import build_plan
+from steerlab.hardware.live import ProcessLoop
+from steerlab.protocols import events as ev
+from steerlab.protocols.datafile import DataFileError, SessionFile, SessionWriter, check_free_space
+from steerlab.protocols.engine import SessionEngine, State
+from steerlab.protocols.session import build_plan
 from tests.hardware.can_wire import wait_for
 from tests.helpers import ROOT
 
@@ -175,7 +175,7 @@ def test_free_space_check_names_both_figures(tmp_path):
 
 def test_steerlab_run_refuses_a_disk_too_small_for_the_session(tiny_disk):
     p = subprocess.run(
-        [sys.executable, "-m", "app.cli", "run", "--subject", "1", "--out", str(tiny_disk)],
+        [sys.executable, "-m", "steerlab", "run", "--subject", "1", "--out", str(tiny_disk)],
         cwd=ROOT,
         capture_output=True,
         text=True,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.otherworld import (
+from steerlab.benchmarks.otherworld import (
     DEFAULT_ARM,
     MECHANISMS,
     Multisine,

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from scipy.signal import cont2discrete, csd, welch
 
-from benchmarks.otherworld import DEFAULT_ARM, Multisine, World, simulate_trial
+from steerlab.benchmarks.otherworld import DEFAULT_ARM, Multisine, World, simulate_trial
 
 I_W, B_SW, K_SW = 0.3, 2.0, 4.2
 PERIOD = 10.0  # short period: fast tests; the physics does not depend on it

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.cli import main as steerlab
-from benchmarks.otherworld import (
+from steerlab.app.cli import main as steerlab
+from steerlab.benchmarks.otherworld import (
     DEFAULT_ARM,
     WORLDS,
     Multisine,
@@ -147,7 +147,7 @@ def test_population_defaults_follow_the_paper_trends():
 
 def test_cli_writes_a_study_and_rejects_bad_input(tmp_path):
     out = tmp_path / "cli"
-    cmd = [sys.executable, "-m", "benchmarks.otherworld", "--out", str(out)]
+    cmd = [sys.executable, "-m", "steerlab.benchmarks.otherworld", "--out", str(out)]
     r = subprocess.run(
         cmd + ["--subjects", "1", "--conditions", "PT", "--fs", "100", "--periods", "1"],
         cwd=ROOT,

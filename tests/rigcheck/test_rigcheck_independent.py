@@ -11,8 +11,8 @@ import h5py
 import numpy as np
 import pytest
 
-from analysis.rigcheck import PARAMS, Recording, fit_rig, prepare
-from app.cli import main
+from steerlab.analysis.rigcheck import PARAMS, Recording, fit_rig, prepare
+from steerlab.app.cli import main
 from tests.rigcheck.independent import Truth, jittered_times, multisine, simulate, write_csv
 
 TRUTH = Truth()

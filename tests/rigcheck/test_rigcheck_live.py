@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import time
 
-from app.rigcheck import hands_off_plan
-from protocols.protocol import load_protocol
+from steerlab.app.rigcheck import hands_off_plan
+from steerlab.protocols.protocol import load_protocol
 from tests.live.conftest import devices, rig_config  # noqa: F401 (fixtures)
 
 

@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
-from analysis.rigcheck import (
+from steerlab.analysis.rigcheck import (
     PARAMS,
     RigCheckError,
     fit_rig,
@@ -25,19 +25,19 @@ from analysis.rigcheck import (
     prepare,
     read_recording,
 )
-from app.rigcheck import hands_off_plan, record_hands_off
-from hardware.can import ConfigError
-from hardware.rig import load_rig
-from hardware.sim.mechanisms import (
+from steerlab.app.rigcheck import hands_off_plan, record_hands_off
+from steerlab.hardware.can import ConfigError
+from steerlab.hardware.rig import load_rig
+from steerlab.hardware.sim.mechanisms import (
     ActuatorLag,
     CoulombFriction,
     Mechanisms,
     WheelImbalance,
 )
-from hardware.sim.physiology import make_population
-from hardware.sim.rig import simulated_rig
-from hardware.sim.world import WorldConfig
-from protocols.protocol import load_protocol
+from steerlab.hardware.sim.physiology import make_population
+from steerlab.hardware.sim.rig import simulated_rig
+from steerlab.hardware.sim.world import WorldConfig
+from steerlab.protocols.protocol import load_protocol
 from tests.helpers import ROOT
 
 FS = 1000.0
@@ -154,8 +154,8 @@ def test_measured_wheel_drives_the_simulator(tmp_path):
 
 
 def test_simulate_with_rig_model_records_the_wheel(tmp_path, fast_protocol_file):
-    from app.simulate import simulate_study
-    from protocols.protocol import VirtualWheel
+    from steerlab.app.simulate import simulate_study
+    from steerlab.protocols.protocol import VirtualWheel
 
     rig_json = {p: {"value": v, "sem": 0.001} for p, v in truth(**KNOWN).items()}
     (tmp_path / "rig.json").write_text(json.dumps(rig_json))
@@ -173,7 +173,7 @@ def test_simulate_with_rig_model_records_the_wheel(tmp_path, fast_protocol_file)
     tau = w["mechanisms"]["actuator_lag"]["tau_s"]
     assert lag_equivalent(tau, 1 / 200)[0] == pytest.approx(truth(**KNOWN)["delay_s"])
     # The report header names the wheel.
-    from analysis.pipeline import load_directory, wheel_used_sentence
+    from steerlab.analysis.pipeline import load_directory, wheel_used_sentence
 
     _, inputs = load_directory(tmp_path / "s")
     line = wheel_used_sentence([i.to_dict() for i in inputs])
@@ -190,7 +190,7 @@ def test_bad_rig_model_and_rig_file(tmp_path):
     with pytest.raises(RigCheckError, match=r"rig.json: damping_Nms_per_rad: missing"):
         load_rig_model(p)
     r = subprocess.run(
-        [sys.executable, "-m", "app.cli", "simulate", "--subjects", "1", "--out",
+        [sys.executable, "-m", "steerlab", "simulate", "--subjects", "1", "--out",
          str(tmp_path / "s"), "--rig-model", str(p)],
         cwd=ROOT, capture_output=True, text=True, timeout=120,
     )  # fmt: skip
@@ -224,7 +224,7 @@ def test_live_rig_check_on_the_simulated_rig(tmp_path):
     rig.write_text(text + extra + "\n[rig_check]\ninertia_rel = 0.2\ncoulomb_max_nm = 0.2\n")
     out = tmp_path / "check"
     r = subprocess.run(
-        [sys.executable, "-m", "app.cli", "rig-check", "--rig", str(rig), "--out", str(out),
+        [sys.executable, "-m", "steerlab", "rig-check", "--rig", str(rig), "--out", str(out),
          "--periods", "1"],
         cwd=ROOT, capture_output=True, text=True, timeout=280,
     )  # fmt: skip
@@ -241,7 +241,7 @@ def test_live_rig_check_on_the_simulated_rig(tmp_path):
         assert bool(g.attrs["hands_off"])
     # A second run refuses to overwrite the recording.
     r = subprocess.run(
-        [sys.executable, "-m", "app.cli", "rig-check", "--rig", str(rig), "--out", str(out)],
+        [sys.executable, "-m", "steerlab", "rig-check", "--rig", str(rig), "--out", str(out)],
         cwd=ROOT, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert r.returncode == 2 and "exists already" in r.stderr
@@ -250,8 +250,8 @@ def test_live_rig_check_on_the_simulated_rig(tmp_path):
 def test_run_records_the_last_rig_check(tmp_path):
     """`steerlab run --rig-check DIR/rig.json`: the session file carries the rig's last check,
     and the report header names it; a bad rig.json stops the run before the rig comes up."""
-    from analysis.pipeline import load_directory, wheel_used_sentence
-    from app.run import run_session
+    from steerlab.analysis.pipeline import load_directory, wheel_used_sentence
+    from steerlab.app.run import run_session
     from tests.live.conftest import SHORT_PROTOCOL
 
     proto = tmp_path / "short.toml"

@@ -20,9 +20,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from app.cli import main
-from protocols.interchange import InterchangeError, read_trial
-from protocols.protocol import ProtocolError, parse_protocol
+from steerlab.app.cli import main
+from steerlab.protocols.interchange import InterchangeError, read_trial
+from steerlab.protocols.protocol import ProtocolError, parse_protocol
 from tests.helpers import edit, fast_protocol_text
 
 HEADER = "time_s,perturbation_torque_Nm,driver_torque_Nm,wheel_angle_rad,grip_force_N"

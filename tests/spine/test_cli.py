@@ -11,8 +11,8 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from protocols.latin_square import williams_square
-from protocols.perturbation import design_multisine
+from steerlab.protocols.latin_square import williams_square
+from steerlab.protocols.perturbation import design_multisine
 from tests.helpers import ROOT
 
 CONDS = ["RT", "BT18", "BT12", "BT8", "BT5", "PT"]
@@ -20,7 +20,7 @@ CONDS = ["RT", "BT18", "BT12", "BT8", "BT5", "PT"]
 
 def steerlab(*args, timeout=600):
     return subprocess.run(
-        [sys.executable, "-m", "app.cli", *map(str, args)],
+        [sys.executable, "-m", "steerlab", *map(str, args)],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -33,6 +33,21 @@ def test_help_lists_the_commands():
     assert r.returncode == 0
     for cmd in ("simulate", "export", "import", "report"):
         assert cmd in r.stdout
+
+
+def test_version_and_one_import_name(tmp_path):
+    r = steerlab("--version")
+    assert r.returncode == 0 and r.stdout.startswith("steerlab "), r.stdout + r.stderr
+    # From outside the checkout, the code is reached as steerlab.<package> and the generic
+    # folder names are not importable (they would collide with users' own modules).
+    code = (
+        "import importlib.util as u, steerlab.analysis, steerlab.hardware, steerlab.protocols,"
+        " steerlab.app; print([m for m in ('app', 'analysis', 'hardware', 'protocols',"
+        " 'benchmarks') if u.find_spec(m)])"
+    )
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]"
 
 
 def test_simulate_refuses_existing_output_and_bad_input(tmp_path, fast_protocol_file):

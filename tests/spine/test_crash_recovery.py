@@ -23,10 +23,10 @@ import h5py
 import numpy as np
 import pytest
 
-from analysis.pipeline import load_directory
-from protocols.datafile import SessionFile, load_study
-from protocols.h5status import clear_status_flags, lookup3, status_flags
-from protocols.writelock import live_writer
+from steerlab.analysis.pipeline import load_directory
+from steerlab.protocols.datafile import SessionFile, load_study
+from steerlab.protocols.h5status import clear_status_flags, lookup3, status_flags
+from steerlab.protocols.writelock import live_writer
 from tests.helpers import ROOT
 
 TINY = """
@@ -69,7 +69,7 @@ def _protocol(tmp_path: Path, fam: int = 1, brk: float = 3.0) -> Path:
 
 def steerlab(*args, timeout=300) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "app.cli", *map(str, args)],
+        [sys.executable, "-m", "steerlab", *map(str, args)],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -79,7 +79,7 @@ def steerlab(*args, timeout=300) -> subprocess.CompletedProcess:
 
 def _start(*args) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "app.cli", *map(str, args)],
+        [sys.executable, "-m", "steerlab", *map(str, args)],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -224,7 +224,7 @@ def test_kill_between_subjects(tmp_path):
 # pauses it; the code under test is unchanged) and this test kills it while it waits.
 _PAUSE_IN_CREATION = """
 import os, sys, time
-import protocols.datafile as d
+import steerlab.protocols.datafile as d
 where = sys.argv[1]
 if where == "attributes":  # inside h5py.File(NAME.h5.creating, "w"), attributes half-written
     real = d._set_attrs
@@ -237,7 +237,7 @@ else:  # the file complete under its temporary name, not yet renamed
     def fsync(fd):
         print("PAUSED", flush=True); time.sleep(60)
     d.os.fsync = fsync
-from app.cli import main
+from steerlab.app.cli import main
 sys.exit(main(sys.argv[2:]))
 """
 
@@ -324,7 +324,7 @@ def test_a_file_left_open_is_read_without_changing_a_sample(tmp_path):
     path = _killed_in_write_mode(tmp_path, swmr=False)
     os.rename(path, tmp_path / "S01.h5")
     path = tmp_path / "S01.h5"
-    from protocols.datafile import _open_for_reading
+    from steerlab.protocols.datafile import _open_for_reading
 
     with _open_for_reading(path) as f:
         np.testing.assert_array_equal(f["x"][()], np.arange(3000.0))

@@ -13,20 +13,20 @@ import h5py
 import numpy as np
 import pytest
 
-from hardware.sim.physiology import make_population
-from hardware.sim.rig import simulated_rig
-from hardware.sim.world import WorldConfig
-from protocols.datafile import DataFileError, SessionFile, SessionWriter
-from protocols.engine import SessionEngine
-from protocols.h5status import status_flags
-from protocols.perturbation import PerturbationDesign
-from protocols.session import build_plan
+from steerlab.hardware.sim.physiology import make_population
+from steerlab.hardware.sim.rig import simulated_rig
+from steerlab.hardware.sim.world import WorldConfig
+from steerlab.protocols.datafile import DataFileError, SessionFile, SessionWriter
+from steerlab.protocols.engine import SessionEngine
+from steerlab.protocols.h5status import status_flags
+from steerlab.protocols.perturbation import PerturbationDesign
+from steerlab.protocols.session import build_plan
 from tests.helpers import ROOT
 
 
 def _cli(*args, **kw):
     return subprocess.Popen(
-        [sys.executable, "-m", "app.cli", *args],
+        [sys.executable, "-m", "steerlab", *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

@@ -8,16 +8,22 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hardware.sim.physiology import make_population
-from hardware.sim.rig import simulated_rig
-from protocols import events as ev
-from protocols.datafile import SessionFile, SessionWriter
-from protocols.engine import TRANSITIONS, IllegalTransition, SessionEngine, State, TrialFault
-from protocols.session import build_plan
+from steerlab.hardware.sim.physiology import make_population
+from steerlab.hardware.sim.rig import simulated_rig
+from steerlab.protocols import events as ev
+from steerlab.protocols.datafile import SessionFile, SessionWriter
+from steerlab.protocols.engine import (
+    TRANSITIONS,
+    IllegalTransition,
+    SessionEngine,
+    State,
+    TrialFault,
+)
+from steerlab.protocols.session import build_plan
 
 
 def _rig(fs=200.0):
-    from hardware.sim.world import WorldConfig
+    from steerlab.hardware.sim.world import WorldConfig
 
     return simulated_rig(make_population(1, seed=3)[0], WorldConfig(fs_hz=fs))
 
@@ -197,7 +203,7 @@ def test_resume_runs_only_missing_trials(fast_protocol, tmp_path):
 
 
 def test_resume_refuses_a_different_protocol(fast_protocol, default_protocol, tmp_path):
-    from protocols.datafile import DataFileError
+    from steerlab.protocols.datafile import DataFileError
 
     plan = build_plan(fast_protocol, 1)
     e1 = SessionEngine(replace(plan, trials=plan.trials[:1]), _rig().batch_loop())

@@ -14,20 +14,20 @@ import h5py
 import numpy as np
 import pytest
 
-from hardware.sim.physiology import make_population
-from hardware.sim.rig import simulated_rig
-from hardware.sim.world import WorldConfig
-from protocols.datafile import DataFileError, SessionFile, SessionWriter
-from protocols.engine import SessionEngine
-from protocols.interchange import InterchangeError, export_study, import_study
-from protocols.protocol import ProtocolError, parse_protocol
-from protocols.session import build_plan
+from steerlab.hardware.sim.physiology import make_population
+from steerlab.hardware.sim.rig import simulated_rig
+from steerlab.hardware.sim.world import WorldConfig
+from steerlab.protocols.datafile import DataFileError, SessionFile, SessionWriter
+from steerlab.protocols.engine import SessionEngine
+from steerlab.protocols.interchange import InterchangeError, export_study, import_study
+from steerlab.protocols.protocol import ProtocolError, parse_protocol
+from steerlab.protocols.session import build_plan
 from tests.helpers import ROOT, edit, fast_protocol_text
 
 
 def steerlab(*args, timeout=600):
     return subprocess.run(
-        [sys.executable, "-m", "app.cli", *map(str, args)],
+        [sys.executable, "-m", "steerlab", *map(str, args)],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -146,7 +146,7 @@ def test_the_protocol_and_the_gui_check_names(tmp_path, fast_protocol):
     for bad in ("BT/8", "..", "B T", "BT8\\u0000"):
         with pytest.raises(ProtocolError, match=r"\[\[conditions\]\] #4.*name.*not a safe name"):
             parse_protocol(edit(text, 'name = "BT8"', f'name = "{bad}"'), "p.toml")
-    from app.gui.controller import ControlError, SessionController
+    from steerlab.app.gui.controller import ControlError, SessionController
 
     ctl = SessionController(fast_protocol, tmp_path)
     plan = build_plan(fast_protocol, 1, subject="../x")
@@ -228,7 +228,7 @@ def test_damaged_chunk_skips_that_trial_and_keeps_the_others(session, tmp_path):
     assert r.returncode == 0, r.stderr
     assert f"skipped a damaged trial: {bad}:/trials/{key}" in r.stderr
     assert len(list((tmp_path / "csv").glob("*.csv"))) == len(good)
-    from analysis.study import _skip_reason
+    from steerlab.analysis.study import _skip_reason
 
     assert "checksum" in _skip_reason(status[key])
 

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.simulate import simulate_study
-from protocols.datafile import SessionFile
-from protocols.interchange import InterchangeError, export_study, import_study
+from steerlab.app.simulate import simulate_study
+from steerlab.protocols.datafile import SessionFile
+from steerlab.protocols.interchange import InterchangeError, export_study, import_study
 
 EXAMPLE = Path(__file__).resolve().parents[3] / "shared" / "examples" / "interchange"
 HEADER = "time_s,perturbation_torque_Nm,driver_torque_Nm,wheel_angle_rad,grip_force_N"

@@ -4,8 +4,8 @@ import itertools
 
 import pytest
 
-from protocols.latin_square import condition_order, williams_square
-from protocols.session import build_plan
+from steerlab.protocols.latin_square import condition_order, williams_square
+from steerlab.protocols.session import build_plan
 
 
 @pytest.mark.parametrize("n", [2, 4, 6, 8])

@@ -18,10 +18,10 @@ import time
 import h5py
 import pytest
 
-from app.gui.controller import ControlError, SessionController
-from protocols.datafile import DataFileError, SessionFile, SessionWriter
-from protocols.protocol import load_protocol
-from protocols.writelock import WriterLock, live_writer
+from steerlab.app.gui.controller import ControlError, SessionController
+from steerlab.protocols.datafile import DataFileError, SessionFile, SessionWriter
+from steerlab.protocols.protocol import load_protocol
+from steerlab.protocols.writelock import WriterLock, live_writer
 from tests.helpers import ROOT
 from tests.spine.test_crash_recovery import _protocol, steerlab
 
@@ -41,7 +41,7 @@ def test_a_second_writer_is_refused_naming_the_first(tmp_path):
     log = open(tmp_path / "first.log", "w")  # noqa: SIM115
     for _try in range(3):  # a loaded machine can stall the real-time loop, which aborts
         first = subprocess.Popen(
-            [sys.executable, "-m", "app.cli", *map(str, run), *(("--resume",) if _try else ())],
+            [sys.executable, "-m", "steerlab", *map(str, run), *(("--resume",) if _try else ())],
             cwd=ROOT,
             stdout=log,
             stderr=subprocess.STDOUT,

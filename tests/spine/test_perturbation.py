@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocols.perturbation import PerturbationDesign, PerturbationSpec, design_multisine
+from steerlab.protocols.perturbation import PerturbationDesign, PerturbationSpec, design_multisine
 
 FS = 1000.0
 

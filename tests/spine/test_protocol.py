@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from protocols.protocol import ProtocolError, load_protocol, parse_protocol
+from steerlab.protocols.protocol import ProtocolError, load_protocol, parse_protocol
 from tests.helpers import fast_protocol_text
 
 

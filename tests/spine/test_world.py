@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hardware.sim.mechanisms import (
+from steerlab.hardware.sim.mechanisms import (
     ActuatorLag,
     CoulombFriction,
     Drift,
@@ -17,13 +17,13 @@ from hardware.sim.mechanisms import (
     SensorDelay,
     StiffnessNonlinearity,
 )
-from hardware.sim.physiology import CONDITIONS, NOMINAL, make_population
-from hardware.sim.rig import simulated_rig
-from hardware.sim.world import NOISELESS_SENSORS as NOISELESS
-from hardware.sim.world import SensorSpec, World, WorldConfig
-from protocols.engine import SessionEngine
-from protocols.events import SamplesAcquired
-from protocols.session import build_plan
+from steerlab.hardware.sim.physiology import CONDITIONS, NOMINAL, make_population
+from steerlab.hardware.sim.rig import simulated_rig
+from steerlab.hardware.sim.world import NOISELESS_SENSORS as NOISELESS
+from steerlab.hardware.sim.world import SensorSpec, World, WorldConfig
+from steerlab.protocols.engine import SessionEngine
+from steerlab.protocols.events import SamplesAcquired
+from steerlab.protocols.session import build_plan
 
 
 def _collect(engine: SessionEngine) -> dict[str, dict[str, np.ndarray]]:
@@ -56,7 +56,7 @@ def test_batch_and_sample_by_sample_give_the_same_signals(fast_protocol):
 
 
 def _excited_response(cond: str, sensors: SensorSpec, remnant: float, fs: float = 1000.0):
-    from protocols.perturbation import design_multisine
+    from steerlab.protocols.perturbation import design_multisine
 
     d = design_multisine()
     b = replace(NOMINAL[cond], remnant_sd_nm=remnant)
@@ -129,7 +129,7 @@ def test_population_is_seeded_and_varies_between_subjects():
 def _run_with(mech: Mechanisms, cond="BT12", n=20000, seed=2):
     w = World(WorldConfig(mechanisms=mech))
     w.begin_trial(NOMINAL[cond], 0.5, seed=seed)
-    from protocols.perturbation import design_multisine
+    from steerlab.protocols.perturbation import design_multisine
 
     return w.run(design_multisine().signal(np.arange(n) / 1000.0))
 
@@ -177,7 +177,7 @@ def test_actuator_lag_is_a_first_order_lag_of_the_command():
 
 
 def test_drift_scales_stiffness_with_trial_index(fast_protocol):
-    from hardware.sim.rig import SimulatedSubject
+    from steerlab.hardware.sim.rig import SimulatedSubject
 
     subj = SimulatedSubject(make_population(1, seed=0)[0])
     plan = build_plan(fast_protocol, 1)

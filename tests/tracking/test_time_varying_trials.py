@@ -8,16 +8,16 @@ import h5py
 import numpy as np
 import pytest
 
-from hardware.sim.physiology import NOMINAL, make_population
-from hardware.sim.rig import SimulatedSubject, simulated_rig
-from hardware.sim.schedule import BehaviourSchedule
-from hardware.sim.world import NOISELESS_SENSORS as NOISELESS
-from hardware.sim.world import TRUTH_CHANNELS, World, WorldConfig
-from protocols.datafile import SessionFile, SessionWriter
-from protocols.engine import LoopControl, SessionEngine
-from protocols.events import SamplesAcquired
-from protocols.protocol import ProtocolError, load_protocol, parse_protocol
-from protocols.session import ConditionSchedule, build_plan
+from steerlab.hardware.sim.physiology import NOMINAL, make_population
+from steerlab.hardware.sim.rig import SimulatedSubject, simulated_rig
+from steerlab.hardware.sim.schedule import BehaviourSchedule
+from steerlab.hardware.sim.world import NOISELESS_SENSORS as NOISELESS
+from steerlab.hardware.sim.world import TRUTH_CHANNELS, World, WorldConfig
+from steerlab.protocols.datafile import SessionFile, SessionWriter
+from steerlab.protocols.engine import LoopControl, SessionEngine
+from steerlab.protocols.events import SamplesAcquired
+from steerlab.protocols.protocol import ProtocolError, load_protocol, parse_protocol
+from steerlab.protocols.session import ConditionSchedule, build_plan
 from tests.helpers import fast_protocol_text
 
 SWITCH = """
@@ -168,7 +168,7 @@ def test_ramp_moves_the_target_linearly_on_a_log_scale():
 
 def test_the_arm_moves_with_the_logged_parameters():
     """Noise-free: after a switch, the world's admittance is the logged parameters' (dpar path)."""
-    from protocols.perturbation import design_multisine
+    from steerlab.protocols.perturbation import design_multisine
 
     fs = 1000.0
     design = design_multisine()

@@ -10,8 +10,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from analysis.lpv import OperatingPoint
-from analysis.tracking import (
+from steerlab.analysis.lpv import OperatingPoint
+from steerlab.analysis.tracking import (
     TRACKED,
     Calibration,
     GripInformedEKF,
@@ -24,16 +24,16 @@ from analysis.tracking import (
     score,
     simulate_time_varying,
 )
-from analysis.tracking.calibration import Disturbance, disturbance_of
-from analysis.tracking.online import OnlineTracker
-from hardware.sim.physiology import NOMINAL
-from hardware.sim.schedule import BehaviourSchedule
-from hardware.sim.world import NOISELESS_SENSORS as QUIET
-from hardware.sim.world import SensorSpec, World, WorldConfig
-from protocols.perturbation import design_multisine
-from protocols.protocol import VirtualWheel
-from protocols.records import TrialRecord
-from protocols.session import ConditionSchedule
+from steerlab.analysis.tracking.calibration import Disturbance, disturbance_of
+from steerlab.analysis.tracking.online import OnlineTracker
+from steerlab.hardware.sim.physiology import NOMINAL
+from steerlab.hardware.sim.schedule import BehaviourSchedule
+from steerlab.hardware.sim.world import NOISELESS_SENSORS as QUIET
+from steerlab.hardware.sim.world import SensorSpec, World, WorldConfig
+from steerlab.protocols.perturbation import design_multisine
+from steerlab.protocols.protocol import VirtualWheel
+from steerlab.protocols.records import TrialRecord
+from steerlab.protocols.session import ConditionSchedule
 
 FS = 500.0
 LPV_CONDITIONS = ("BT18", "BT12", "BT8", "BT5", "PT")
@@ -160,7 +160,7 @@ def test_ours_tracks_a_step_within_half_a_second(steps):
 def test_information_benchmark_recovers_a_wrong_stiffness_from_the_response(steps):
     # benchmarks/tracking_information: the filter told the true arm but k_i 30 % high must
     # find k_i from the perturbation response alone after each step.
-    from benchmarks.tracking_information import segments
+    from steerlab.benchmarks.tracking_information import segments
 
     rows = segments(steps, Calibration.from_points(_points()), 0.0, k_i_offset=math.log(1.3))
     late = [abs(err) for t, err, _ in rows if t == 4.0]
@@ -294,7 +294,7 @@ def test_calibration_and_gui_read_results_json_alike():
             ],
         }
     }  # fmt: skip
-    from analysis.lpv_results import lpv_from_document
+    from steerlab.analysis.lpv_results import lpv_from_document
 
     cal = Calibration.from_results(doc)
     gui = lpv_from_document(doc).model
@@ -320,7 +320,7 @@ def test_calibration_and_gui_read_results_json_alike():
 def test_calibration_from_bad_results_names_the_point(tmp_path, points, match):
     """A results.json the trackers cannot use: CalibrationError (a ValueError), naming the file
     and the operating point, through the same reader as the GUI."""
-    from analysis.tracking.calibration import CalibrationError
+    from steerlab.analysis.tracking.calibration import CalibrationError
 
     path = tmp_path / "results.json"
     path.write_text(json.dumps({"lpv": {"operating_points": points}}))

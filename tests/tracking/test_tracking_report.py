@@ -7,9 +7,9 @@ import json
 
 import pytest
 
-from analysis.report import write_report
-from analysis.tracking.online import OnlineTracker
-from app.simulate import simulate_study
+from steerlab.analysis.report import write_report
+from steerlab.analysis.tracking.online import OnlineTracker
+from steerlab.app.simulate import simulate_study
 from tests.helpers import fast_protocol_text
 
 pytestmark = pytest.mark.filterwarnings("ignore:The inplace keyword")
