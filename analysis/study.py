@@ -10,6 +10,9 @@
 3. Per subject × condition, over the measured repetitions: FRF, arm fit, VAF (pooled over the
    repetitions' analysed periods), FIT%, grip-force mean and SD (pooled over all analysed
    samples of the repetitions, so slow drifts between repetitions count as variability).
+   The arm fits are one joint fit per subject (one task per subject on the same executor, or
+   on a ``ProcessPoolExecutor(jobs)``); the comparison weighting starts from the default's
+   solution.
 4. Per condition: group FRF (complex mean over subjects, 95 % intervals) and the arm fit to it;
    grip force over subjects, including the median of the subjects' means (the LPV model's
    scheduling variable).
@@ -499,11 +502,19 @@ def analyze_study(
     by_subject: dict[str, list[tuple[str, FrequencyResponse]]] = {}
     for subj, cond, _, frf in cell_frfs:
         by_subject.setdefault(subj, []).append((cond, frf))
-    fits, inertia = _fit_sets(by_subject, opt.fit, notes)
-    fits_cmp: dict[tuple[str, str], ArmFit | str] = {}
-    inertia_cmp: dict[str, JointArmFit] = {}
-    if opt.compare_weightings:
-        fits_cmp, inertia_cmp = _fit_sets(by_subject, opt.comparison_fit, [])
+    own_pool = executor is None and jobs > 1 and len(by_subject) > 1
+    fit_ex = cf.ProcessPoolExecutor(max_workers=jobs) if own_pool else executor
+    try:
+        fits, inertia = _fit_sets(by_subject, opt.fit, notes, executor=fit_ex)
+        fits_cmp: dict[tuple[str, str], ArmFit | str] = {}
+        inertia_cmp: dict[str, JointArmFit] = {}
+        if opt.compare_weightings:
+            fits_cmp, inertia_cmp = _fit_sets(
+                by_subject, opt.comparison_fit, [], starts=inertia, executor=fit_ex
+            )
+    finally:
+        if own_pool and fit_ex is not None:
+            fit_ex.shutdown(cancel_futures=True)
 
     per_cell: list[SubjectConditionResult] = []
     for subj, cond, items, frf in cell_frfs:
@@ -555,7 +566,7 @@ def analyze_study(
     inertia.update(ginertia)
     gfits_cmp: dict[tuple[str, str], ArmFit | str] = {}
     if opt.compare_weightings:
-        gfits_cmp, ginertia_cmp = _fit_sets(group_sets, opt.comparison_fit, [])
+        gfits_cmp, ginertia_cmp = _fit_sets(group_sets, opt.comparison_fit, [], starts=ginertia)
         inertia_cmp.update(ginertia_cmp)
     per_condition: list[ConditionResult] = []
     for cond, group in groups.items():
@@ -588,35 +599,64 @@ def analyze_study(
     )
 
 
+def _fit_set(
+    name: str, items: list[tuple[str, Any]], fopt: FitOptions, start: JointArmFit | None
+) -> tuple[dict[tuple[str, str], ArmFit | str], JointArmFit | None, list[str]]:
+    """One set's fits (see :func:`_fit_sets`); a module-level function so that it runs on any
+    executor (process pools and Dask pickle it)."""
+    out: dict[tuple[str, str], ArmFit | str] = {}
+    notes: list[str] = []
+    good: list[tuple[str, Any]] = []
+    for cond, est in items:
+        try:  # a response the fit cannot use at all (too few bands, no noise variance)
+            check_fittable(est, fopt)
+        except ValueError as e:
+            out[(name, cond)] = str(e)
+            continue
+        good.append((cond, est))
+    if not good:
+        return out, None, notes
+    if start is not None and start.labels != tuple(c for c, _ in good):
+        start = None
+    try:
+        joint = fit_arm_joint([e for _, e in good], fopt, labels=[c for c, _ in good], start=start)
+    except (ValueError, np.linalg.LinAlgError) as e:
+        for cond, _ in good:
+            out[(name, cond)] = f"joint fit of {name} failed: {e}"
+        notes.append(f"{name}: joint arm fit failed: {e}")
+        return out, None, notes
+    for cond, fit in joint.by_label().items():
+        out[(name, cond)] = fit
+    keep = joint.mode == "subject" or (fopt.inertia == "subject" and len(good) == 1)
+    return out, joint if keep else None, notes
+
+
 def _fit_sets(
-    sets: dict[str, list[tuple[str, Any]]], fopt: FitOptions, notes: list[str]
+    sets: dict[str, list[tuple[str, Any]]],
+    fopt: FitOptions,
+    notes: list[str],
+    starts: dict[str, JointArmFit] | None = None,
+    executor: cf.Executor | None = None,
 ) -> tuple[dict[tuple[str, str], ArmFit | str], dict[str, JointArmFit]]:
     """Fit each set of responses (a subject's conditions, or the group's) with one I_i per
     set (``fopt.inertia`` "subject"), or each response alone. Returns ``{(set, condition):
     ArmFit or the error message}`` and the joint fits by set. A response that cannot be fitted
-    is left out of its set's joint fit, with a note, so it cannot take the others with it."""
+    is left out of its set's joint fit, with a note, so it cannot take the others with it.
+    ``starts``: joint fits of the same sets (the default's, for the comparison weighting) to
+    start from, by set name (see :func:`fit_arm_joint`). ``executor``: where the sets are
+    fitted (one task per set); the results do not depend on it."""
+    starts = starts or {}
+    args = [(name, items, fopt, starts.get(name)) for name, items in sets.items()]
+    if executor is None or len(args) < 2:
+        results = [_fit_set(*a) for a in args]
+    else:
+        futures = [executor.submit(_fit_set, *a) for a in args]
+        results = [f.result() for f in futures]
     out: dict[tuple[str, str], ArmFit | str] = {}
     joints: dict[str, JointArmFit] = {}
-    for name, items in sets.items():
-        good: list[tuple[str, Any]] = []
-        for cond, est in items:
-            try:  # a response the fit cannot use at all (too few bands, no noise variance)
-                check_fittable(est, fopt)
-            except ValueError as e:
-                out[(name, cond)] = str(e)
-                continue
-            good.append((cond, est))
-        if not good:
-            continue
-        try:
-            joint = fit_arm_joint([e for _, e in good], fopt, labels=[c for c, _ in good])
-        except (ValueError, np.linalg.LinAlgError) as e:
-            for cond, _ in good:
-                out[(name, cond)] = f"joint fit of {name} failed: {e}"
-            notes.append(f"{name}: joint arm fit failed: {e}")
-            continue
-        for cond, fit in joint.by_label().items():
-            out[(name, cond)] = fit
-        if joint.mode == "subject" or (fopt.inertia == "subject" and len(good) == 1):
+    for (name, *_), (o, joint, n) in zip(args, results, strict=True):
+        out.update(o)
+        notes.extend(n)
+        if joint is not None:
             joints[name] = joint
     return out, joints
