@@ -115,8 +115,13 @@ def _cmd_report(a: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"steerlab report: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    from steerlab.analysis.executors import executor_for
+
     options = AnalysisOptions(fit=fit, compare_weightings=not a.no_compare)
-    write_report(a.dir, a.out, jobs=a.jobs, progress=Progress("report"), options=options)
+    with executor_for(a.scheduler, a.jobs) as ex:
+        write_report(
+            a.dir, a.out, executor=ex, jobs=a.jobs, progress=Progress("report"), options=options
+        )
     print(f"report written to {Path(a.out) / 'index.html'}")
     return 0
 
@@ -157,6 +162,12 @@ def _cmd_gui(a: argparse.Namespace) -> int:
     from steerlab.app.gui.main import run_gui
 
     return run_gui(rig=a.rig, out=a.out, protocol=a.protocol)
+
+
+SCHEDULER_HELP = (
+    "run the parallel work on Dask (pip install 'steerlab[dask]'): a scheduler's address "
+    "(tcp://HOST:8786), a scheduler file, or local[:N] for a LocalCluster of N workers"
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -208,7 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("report", help="analyse a study and write the report")
     r.add_argument("dir")
     r.add_argument("--out", required=True)
-    r.add_argument("--jobs", type=int, default=1)
+    r.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
+    r.add_argument("--scheduler", help=SCHEDULER_HELP)
     r.add_argument(
         "--weighting",
         choices=("inverse_variance", "paper"),

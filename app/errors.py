@@ -23,6 +23,7 @@ _USER_ERRORS = (
     ("steerlab.hardware.live", "RigError"),
     ("steerlab.analysis.rigcheck", "RigCheckError"),
     ("steerlab.app.rigcheck", "RigCheckRunError"),
+    ("steerlab.analysis.executors", "SchedulerError"),
 )
 
 

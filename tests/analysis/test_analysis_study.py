@@ -155,6 +155,28 @@ def test_process_pool_gives_the_same_results(records, study):
     assert _summary(analyze_study(records, jobs=2, options=IDEAL)) == _summary(study)
 
 
+def test_a_dask_local_cluster_gives_the_same_results(records, study):
+    pytest.importorskip("distributed", reason="Dask is the optional extra steerlab[dask]")
+    from steerlab.analysis.executors import executor_for
+
+    with executor_for("local:2") as ex:
+        assert ex is not None and type(ex).__module__.startswith("distributed")
+        on_dask = analyze_study(records, executor=ex, options=IDEAL)
+    assert _summary(on_dask) == _summary(study)
+
+
+def test_a_bad_scheduler_is_named():
+    from steerlab.analysis.executors import SchedulerError, executor_for
+
+    with pytest.raises(SchedulerError, match="local:N"):
+        with executor_for("local:zero"):
+            pass
+    pytest.importorskip("distributed")
+    with pytest.raises(SchedulerError, match="no Dask scheduler"):
+        with executor_for("tcp://127.0.0.1:9", connect_timeout_s=2):
+            pass
+
+
 def test_shared_example_gives_a_plausible_admittance():
     path = find_example()
     if path is None:
