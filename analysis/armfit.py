@@ -312,7 +312,7 @@ class ArmFit:
     sems_residual: dict[str, float] = field(default_factory=dict)
     sems_noise: dict[str, float] | None = None
     vaf_percent: float | None = None
-    # Normalised χ² of the fit under the noise model: Σ|e|²/var / (2K − n), ≈ 1 when the model
+    # Normalised χ² of the fit under the noise model: 2Σ|e|²/var / (2K − n), ≈ 1 when the model
     # explains Ĥ to within its noise (None without a noise model).
     chi2_per_dof: float | None = None
     # d(parameter)/d(I_i) at the fit, from the joint covariance: how much each parameter moves
@@ -756,7 +756,8 @@ def fit_arm_joint(
         dof = 2 * len(pr.f) - n_p - (nI / len(probs))
         chi2 = None
         if pr.var is not None:
-            chi2 = float(np.sum(np.abs(h - pr.H) ** 2 / pr.var) / dof) if dof > 0 else None
+            # Each of the 2K real residuals has half the complex variance: χ² = Σ|e|²/(var/2).
+            chi2 = float(2.0 * np.sum(np.abs(h - pr.H) ** 2 / pr.var) / dof) if dof > 0 else None
         sens: dict[str, float] = {}
         if shared and np.isfinite(cov[0, 0]) and cov[0, 0] > 0:
             sens = {n: float(cov[idx[i], 0] / cov[0, 0]) for i, n in enumerate(free) if i > 0}

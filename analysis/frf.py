@@ -15,6 +15,22 @@ Estimator (closed loop, the perturbation as instrument)
     the magnitude of the product of magnitudes); it is the averaging over bins, periods and
     repetitions that makes Γ informative. ``n_averaged`` says how many products were averaged.
 
+Drift (the non-periodic part's jump)
+    A period is a rectangular window on θ and Td, whose non-periodic part (the remnant, which
+    wanders slowly: most of its power is below 0.1 Hz) does not end where it began. The jump
+    Δ = x[start + P] − x[start] leaks into every bin as Δ/(jπk) (in the scaling above): a
+    *real* random amplitude times a fixed complex direction, the same in every band. At the
+    high bands of the stiff conditions, where θ's response is a few encoder counts, that leak
+    was the largest error of Ĥ: twice the noise-bin variance, one-directional (along or across
+    Ĥ: a standard error right for one contact parameter and wrong for the other) and correlated
+    between bands (Monte-Carlo, docs/method-estimator.md). Subtracting the ramp Δ·n/P from each
+    period of θ and Td removes it exactly, and nothing of the periodic part: x_per[start + P] =
+    x_per[start] (first-order case of the local polynomial method, Pintelon & Schoukens,
+    *System Identification*, 2nd ed., ch. 7). The sample after a period is the next period's
+    first, or the recording's next sample (the engine records a fade-out after the last
+    period); a period that ends the recording is left as it is (an extrapolated sample would
+    add a ramp of the periodic part's curvature). Tp is periodic by design and left as it is.
+
 Noise
     At the unexcited bins next to each band (``noise_bins_per_side`` on each side) only the
     driver's remnant and sensor noise remain. Reported per band: mean |Θ|² and |Td|² there (in
@@ -61,7 +77,11 @@ from steerlab.protocols.records import TrialRecord
 DEFAULT_NOISE_BINS_PER_SIDE = 2  # the paper's design leaves two free bins between low bands
 # Kernel width (SD, in decades of frequency) of the noise smoothing: about ±5 bands of the
 # paper's design around 1 Hz, narrow enough to follow a remnant corner anywhere in 0.05–1 Hz.
-DEFAULT_SMOOTHING_DECADES = 0.15
+DEFAULT_SMOOTHING_DECADES = 0.10
+# Local polynomial degree in log-log: quadratic follows the knee of the noise spectrum at the
+# arm's resonance (2–5 Hz), which a local line over the same width flattens (docs/
+# method-estimator.md: the linear smoother put the noise there 2–4 × too low in PT).
+DEFAULT_SMOOTHING_DEGREE = 2
 
 
 def smooth_log_spectrum(
@@ -69,14 +89,17 @@ def smooth_log_spectrum(
     power: np.ndarray,
     dof: np.ndarray | float,
     decades: float = DEFAULT_SMOOTHING_DECADES,
+    degree: int = DEFAULT_SMOOTHING_DEGREE,
 ) -> np.ndarray:
     """A smooth estimate of a positive spectrum measured with scatter, on the same frequencies.
 
     ``power[j]`` is a mean of ``dof[j]/2`` squared magnitudes of complex Gaussian values (a
-    scaled χ² with ``dof`` degrees of freedom). log power is regressed locally-linearly on
-    log10 f with Gaussian kernel weights (SD ``decades``), each point weighted by its dof; the
-    log of a χ² average is biased by ψ(ν/2) − ln(ν/2), which is removed first. Non-finite or
-    non-positive inputs are left out of the regression (and get the smooth value).
+    scaled χ² with ``dof`` degrees of freedom). log power is regressed on log10 f by a local
+    polynomial of ``degree`` (1: local-linear) with Gaussian kernel weights (SD ``decades``),
+    each point weighted by its dof; the log of a χ² average is biased by ψ(ν/2) − ln(ν/2),
+    which is removed first. Non-finite or non-positive inputs are left out of the regression
+    (and get the smooth value). Where the kernel holds too few points for the polynomial, the
+    degree is lowered.
     """
     f = np.asarray(f_hz, dtype=float)
     v = np.asarray(power, dtype=float)
@@ -92,16 +115,31 @@ def smooth_log_spectrum(
         if not (np.isfinite(f[j]) and f[j] > 0):
             continue
         w = no * np.exp(-0.5 * ((xo - x[j]) / decades) ** 2)
-        if np.count_nonzero(w > 1e-3 * w.max()) < 3:
+        n_eff = np.count_nonzero(w > 1e-3 * w.max())
+        deg = min(degree, n_eff - 2)
+        if deg < 1:
             out[j] = float(np.sum(w * y) / np.sum(w))
             continue
-        sw = np.sum(w)
-        xm = np.sum(w * xo) / sw
-        ym = np.sum(w * y) / sw
-        sxx = np.sum(w * (xo - xm) ** 2)
-        slope = np.sum(w * (xo - xm) * (y - ym)) / sxx if sxx > 0 else 0.0
-        out[j] = ym + slope * (x[j] - xm)
+        sw = np.sqrt(w)
+        A = np.vander(xo - x[j], deg + 1)  # the constant term, last, is the value at x[j]
+        coef = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)[0]
+        out[j] = float(coef[-1])
     return np.exp(out)
+
+
+def drift_removed(x: np.ndarray, selection: PeriodSelection) -> np.ndarray:
+    """``selection.periods(x)`` with each period's non-periodic jump removed (module
+    docstring): period p minus (x[end_p] − x[start_p])·n/P, where end_p is the sample after it
+    (a period that ends the recording is left as it is)."""
+    x = np.asarray(x, dtype=float)
+    out = selection.periods(x).copy()
+    P = selection.period_samples
+    ramp = np.arange(P) / P
+    for p in range(selection.n_periods):
+        after = selection.start + (p + 1) * P
+        if after < len(x):
+            out[p] -= (x[after] - out[p, 0]) * ramp
+    return out
 
 
 def fourier_coefficients(periods: np.ndarray, bins: np.ndarray) -> np.ndarray:
@@ -146,8 +184,10 @@ def trial_spectra(
     noise_bins_per_side: int = DEFAULT_NOISE_BINS_PER_SIDE,
     detect_floor_db: float = DEFAULT_DETECT_FLOOR_DB,
     detect_below_max_db: float = DEFAULT_DETECT_BELOW_MAX_DB,
+    remove_drift: bool = True,
 ) -> TrialSpectra:
-    """Choose the periods and bins of ``record`` (unless given) and take the coefficients."""
+    """Choose the periods and bins of ``record`` (unless given) and take the coefficients
+    (θ and Td with each period's drift removed unless ``remove_drift`` is False)."""
     where = record.source or record.label()
     if selection is None:
         selection = select_periods(record, period_s=period_s, min_run_in_s=min_run_in_s)
@@ -160,6 +200,10 @@ def trial_spectra(
         x = selection.periods(getattr(record, name))
         if not np.all(np.isfinite(x)):
             raise ValueError(f"{where}: {name} has non-finite samples in the analysed periods")
+        if remove_drift and name != "perturbation_torque_Nm":
+            x = drift_removed(getattr(record, name), selection)
+            if not np.all(np.isfinite(x)):  # a non-finite sample just after the periods
+                x = selection.periods(getattr(record, name))
         channels[name] = x
     per_band = excitation.noise_bins(noise_bins_per_side, selection.period_samples // 2)
     noise_bins, inverse = np.unique(np.concatenate(per_band), return_inverse=True)

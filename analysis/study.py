@@ -79,6 +79,9 @@ class AnalysisOptions:
     # Fit every cell a second time with the other weighting (paper ↔ inverse variance), for
     # the report's side-by-side comparison.
     compare_weightings: bool = True
+    # Remove each period's non-periodic jump from θ and Td before the DFT (analysis.frf: the
+    # remnant's drift otherwise leaks into every band as a one-directional, correlated error).
+    remove_drift: bool = True
 
     @property
     def comparison_fit(self) -> FitOptions:
@@ -95,6 +98,7 @@ class AnalysisOptions:
             "fit": self.fit.to_dict(),
             "confidence": self.confidence,
             "compare_weightings": self.compare_weightings,
+            "remove_drift": self.remove_drift,
         }
 
 
@@ -173,6 +177,7 @@ def analyze_trial(index: int, record: TrialRecord, options: AnalysisOptions) -> 
         noise_bins_per_side=options.noise_bins_per_side,
         detect_floor_db=options.detect_floor_db,
         detect_below_max_db=options.detect_below_max_db,
+        remove_drift=options.remove_drift,
     )
     grip = GripMoments.of(spectra.selection.segment(record.grip_force_N))
     return TrialAnalysis(index, spectra, grip)

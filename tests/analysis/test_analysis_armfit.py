@@ -204,3 +204,26 @@ def test_inverse_variance_weighting_is_an_option_and_checked():
     with _pytest.raises(ValueError, match="weighting must be one of"):
         FitOptions(weighting="magic")
     assert FitOptions(weighting="inverse_variance").to_dict()["weighting"] == "inverse_variance"
+
+
+def test_chi2_per_dof_is_one_when_the_noise_model_is_right():
+    """χ² of a fit whose residuals have exactly the stated variance: E[χ²/dof] = 1."""
+    from types import SimpleNamespace
+
+    from steerlab.analysis.armfit import FitOptions, arm_admittance, fit_arm
+
+    rng = np.random.default_rng(2)
+    f = np.geomspace(0.1, 20, 31)
+    truth = {"I_i": 0.1, "b_i": 1.5, "k_i": 20.0, "b_c": 2.5, "k_c": 150.0}
+    H0 = arm_admittance(truth, f)
+    var = (0.02 * np.abs(H0)) ** 2
+    opt = FitOptions(inertia="fixed", I_i=0.1, sampling="ideal", n_exclude_low=0)
+    chi2 = []
+    for _ in range(60):
+        e = np.sqrt(var / 2) * (rng.standard_normal(31) + 1j * rng.standard_normal(31))
+        est = SimpleNamespace(
+            frequencies_hz=f, H=H0 + e, coherence=np.ones(31), H_variance=var, fs_hz=None
+        )
+        chi2.append(fit_arm(est, opt).chi2_per_dof)
+    # 60 fits × 58 dof: the mean of χ²/dof has SD ≈ sqrt(2/58/60) ≈ 0.024.
+    assert np.mean(chi2) == pytest.approx(1.0, abs=0.08)
