@@ -775,6 +775,8 @@ class SimulatedDrive:
         self, index: int, subindex: int, od: ODVariable, data: bytes, **_: object
     ) -> None:
         value = od.decode_raw(data)
+        if not isinstance(value, int):
+            return  # every writable object of this node is an integer; nothing to act on
         if index == MODES_OF_OPERATION and value not in (0, MODE_CST):
             raise SdoAbortedError(ABORT_VALUE_RANGE)  # 0x6502: cyclic synchronous torque only
         if 0x1400 <= index <= 0x1BFF:
@@ -848,7 +850,7 @@ class SimulatedDrive:
         if obj is None:
             raise SdoAbortedError(ABORT_NOT_EXIST)
         usable = obj.writable if receive else obj.readable
-        if not obj.pdo_mappable or not usable or _BITS.get(obj.data_type) != bits:
+        if not obj.pdo_mappable or not usable or _BITS.get(obj.data_type or 0) != bits:
             raise SdoAbortedError(ABORT_NOT_MAPPABLE)
         return MappedObject(index, subindex, bits, obj.data_type in _SIGNED, obj.name)
 
