@@ -424,3 +424,43 @@ def test_rpdo_mapping_refuses_read_only_objects_and_tpdo_rtr_types(rig):
     with pytest.raises(SdoAbortedError) as info:
         node.sdo[0x1800][3].raw = 10  # inhibit time while the TPDO is valid
     assert info.value.code == 0x08000022
+
+
+def test_rpdo3_and_rpdo4_act_and_a_short_rpdo_is_reported(rig):
+    """Any RPDO, not just RPDO1: the controlword in RPDO4 (asynchronous), the target torque in
+    RPDO3 (synchronous, at the next SYNC); a PDO shorter than its mapping is not processed and
+    reported with EMCY 0x8210 (CiA 301)."""
+    node, sim = rig.node, rig.sim
+    node.nmt.state = "PRE-OPERATIONAL"
+    node.rpdo.read()
+    r1, r3, r4 = node.rpdo[1], node.rpdo[3], node.rpdo[4]
+    r1.enabled = False
+    r3.clear()
+    r3.add_variable(0x6071)
+    r3.trans_type = 1
+    r3.enabled = True
+    r4.clear()
+    r4.add_variable(0x6040)
+    r4.add_variable(0x6060)
+    r4.trans_type = 255
+    r4.enabled = True
+    node.rpdo.save()
+    node.nmt.state = "OPERATIONAL"
+    for cw in (0x06, 0x07, 0x0F):
+        r4["Controlword"].raw = cw
+        r4["Modes of operation"].raw = 10
+        r4.transmit()
+    assert wait_for(lambda: sim.state is State402.OPERATION_ENABLED)
+    r3["Target torque"].raw = -50
+    r3.transmit()
+    time.sleep(0.05)
+    assert sim.target_torque_permille == 0 and sim.applied_torque_nm == 0.0  # waits for SYNC
+    node.network.sync.transmit()
+    assert wait_for(lambda: math.isclose(sim.applied_torque_nm, -0.5))
+    # RPDO1 is off now: its frames are not the drive's any more
+    node.network.send_message(0x200 + NODE, b"\x00\x00")
+    time.sleep(0.05)
+    assert sim.state is State402.OPERATION_ENABLED
+    node.network.send_message(0x400 + NODE, b"\x0f")  # 1 byte for a 3-byte mapping
+    assert wait_for(lambda: node.emcy.log and node.emcy.log[-1].code == 0x8210)
+    assert sim.state is State402.OPERATION_ENABLED  # not processed
