@@ -112,7 +112,15 @@ def _goal_met(summary: dict) -> bool:
     return bool(0.8 <= ratio <= 1.25 and 92.0 <= cover <= 98.0)
 
 
-def run_study(conditions: list[str], cells: int, fs_hz: float, seed: int, compare: bool) -> dict:
+def run_study(
+    conditions: list[str],
+    cells: int,
+    fs_hz: float,
+    seed: int,
+    compare: bool,
+    executor=None,
+    jobs: int = 1,
+) -> dict:
     design = design_multisine()
     records = []
     for c in range(cells):
@@ -122,7 +130,9 @@ def run_study(conditions: list[str], cells: int, fs_hz: float, seed: int, compar
                 rec = simulate_trial(NOMINAL[cond], design, fs_hz, [seed, c, k, rep], label, rep)
                 rec.condition = cond
                 records.append(rec)
-    study = analyze_study(records, options=AnalysisOptions(compare_weightings=compare))
+    study = analyze_study(
+        records, executor=executor, jobs=jobs, options=AnalysisOptions(compare_weightings=compare)
+    )
     out = {}
     for cond in conditions:
         rs = [r for r in study.subject_conditions if r.condition == cond]
@@ -163,10 +173,17 @@ def main(argv: list[str]) -> dict:
     ap.add_argument("--fs", type=float, default=1000.0, help="sample rate, Hz")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-compare", action="store_true", help="skip the paper-weighted fits")
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes for the analysis")
+    ap.add_argument("--scheduler", help="Dask scheduler address, or local[:N]")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     conditions = [c.strip() for c in a.conditions.split(",") if c.strip()]
-    results = run_study(conditions, a.cells, a.fs, a.seed, not a.no_compare)
+    from steerlab.analysis.executors import executor_for
+
+    with executor_for(a.scheduler, a.jobs) as ex:
+        results = run_study(
+            conditions, a.cells, a.fs, a.seed, not a.no_compare, executor=ex, jobs=a.jobs
+        )
     return {
         "all_goals_met": all(all(r["goal_met"].values()) for r in results.values()),
         "cells_per_condition": a.cells,

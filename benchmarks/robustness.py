@@ -130,13 +130,21 @@ def main(argv: list[str]) -> dict:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--worlds", default="", help="comma-separated names (default: all)")
     ap.add_argument("--jobs", type=int, default=1, help="worlds in parallel processes")
+    ap.add_argument("--scheduler", help="Dask scheduler address, or local[:N] (worlds on Dask)")
     a = ap.parse_args(argv)
     names = [w.strip() for w in a.worlds.split(",") if w.strip()] or list(WORLDS)
     unknown = [w for w in names if w not in WORLDS]
     if unknown:
         raise SystemExit(f"unknown world(s) {unknown}; known: {list(WORLDS)}")
     t0 = time.perf_counter()
-    if a.jobs > 1:
+    if a.scheduler:
+        from steerlab.analysis.executors import executor_for
+
+        with executor_for(a.scheduler, a.jobs) as ex:
+            assert ex is not None
+            futs = [ex.submit(run_world, w, WORLDS[w], a.subjects, a.seed) for w in names]
+            rows = [f.result() for f in futs]
+    elif a.jobs > 1:
         with cf.ProcessPoolExecutor(a.jobs) as ex:
             futs = [ex.submit(run_world, w, WORLDS[w], a.subjects, a.seed) for w in names]
             rows = [f.result() for f in futs]
