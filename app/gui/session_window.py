@@ -54,7 +54,7 @@ from steerlab.app.gui.controller import (
 from steerlab.app.gui.dashboard import DEFAULT_SPAN_DEG, SubjectDashboard
 from steerlab.app.gui.live_admittance import LiveAdmittancePanel
 from steerlab.app.gui.livedata import LiveData
-from steerlab.app.gui.plots import CoherencePlot, LivePlots
+from steerlab.app.gui.plots import CoherencePlot, LivePlots, RateMeter
 from steerlab.app.gui.quality import QualityCheck, quality_check
 from steerlab.app.gui.tracker_feed import TrackerFeed
 from steerlab.protocols import events as ev
@@ -136,6 +136,11 @@ class ExperimenterWindow(QMainWindow):
         self.setCentralWidget(central)
         self.resize(1400, 900)
 
+        # The plots' frame rate, always in the status bar: if the machine cannot keep up, the
+        # experimenter sees it (frames actually painted, not requested).
+        self.fps_label = QLabel("plots: —")
+        self.statusBar().addPermanentWidget(self.fps_label)
+        self._fps_meter = RateMeter()
         self.status_timer = QTimer(self)
         self.status_timer.setInterval(500)
         self.status_timer.timeout.connect(self.refresh_status)
@@ -596,8 +601,18 @@ class ExperimenterWindow(QMainWindow):
         # A loop in another process shows nothing here: the newest sample received instead.
         return self.live.latest("wheel_angle_rad")
 
+    def _show_frame_rate(self, now: float) -> None:
+        fps = self._fps_meter.rate(self.plots.frames.frames, now)
+        if fps is None:
+            return
+        if self.plots.idle:
+            self.fps_label.setText("plots: no new data")
+        else:
+            self.fps_label.setText(f"plots: {fps:.0f} frames/s")
+
     def refresh_status(self) -> None:
         now, total = time.monotonic(), self.live.total_received
+        self._show_frame_rate(now)
         t0, n0 = self._rate_at
         rate = (total - n0) / (now - t0) if now > t0 else 0.0
         self._rate_at = (now, total)
