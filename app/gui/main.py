@@ -72,6 +72,7 @@ def run_gui(rig: str | None, out: str, protocol: str | None) -> int:
     win = ExperimenterWindow(proto, out, rig_path=rig, dashboard=dashboard)
     win.show()
     dashboard.show()
+    win.place_windows()  # the dashboard beside this window or on the second screen, never over it
     app.setQuitOnLastWindowClosed(False)
     # The experimenter window owns the session: closing it ends the program (and closes the
     # dashboard); closing the dashboard alone does not.
