@@ -3,8 +3,9 @@
 The timer asks for a redraw at ``fps`` frames per second; each redraw copies the newest
 ``window_s`` seconds out of :class:`~app.gui.livedata.LiveData` and sets the curves. A QTimer
 that falls behind coalesces its ticks, so a busy GUI shows fewer frames and the engine never
-waits for it. Curves are decimated to at most ``max_points`` per curve (min/max pairs, so a
-peak of the perturbation is never hidden by the decimation).
+waits for it. Curves are decimated to one point per pixel column (min/max pairs, so a peak of
+the perturbation is never hidden by the decimation). What a frame costs and why it is drawn
+this way: docs/gui.md, "Live plots".
 """
 
 from __future__ import annotations

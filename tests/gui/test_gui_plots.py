@@ -188,3 +188,23 @@ def test_platform_choice(monkeypatch):
     assert msg is not None and "libxcb-icccm4" in msg
     env = {"WAYLAND_DISPLAY": "wayland-0"}
     assert choose_platform(env) is None and env["QT_QPA_PLATFORM"] == "wayland"
+
+
+def test_the_check_runs_before_any_qt_gui_module_is_loaded():
+    # A missing X11 library aborts the interpreter when Qt's GUI starts: the check must come
+    # first, so importing `steerlab gui`'s entry point and checking load no Qt GUI module.
+    import json
+    import subprocess
+    import sys
+
+    code = (
+        "import json, sys\n"
+        "from steerlab.app.gui.main import choose_platform\n"
+        "from steerlab.app.gui.system_libs import check_xcb\n"
+        "choose_platform({}); check_xcb()\n"
+        "qt = [m for m in sys.modules if m.startswith(('PySide6.', 'pyqtgraph'))]\n"
+        "print(json.dumps(sorted(qt)))"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout.strip().splitlines()[-1]) == []
