@@ -101,6 +101,10 @@ def test_small_screen_never_covers_the_stop_button(qtbot, tmp_path):
     assert not w.dashboard.frameGeometry().intersects(stop)
     geo = w.screen().availableGeometry()
     assert geo.contains(w.dashboard.frameGeometry())
+    # "Show" under Subject display, same screen, not full screen: beside again, not centred.
+    w.dashboard.move(0, 0)
+    w.show_dashboard_button.click()
+    assert not w.dashboard.frameGeometry().intersects(stop)
     w.close()
 
 
