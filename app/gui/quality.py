@@ -11,7 +11,9 @@ Figures (all over the measured segment ``[measured_start, measured_stop)`` unles
 - angle RMS about the centre, degrees;
 - time outside the boundary: percentage of measured samples with |θ| > boundary (None without
   a boundary, RT; with the lines on the centre, PT, nearly every sample counts);
-- lost samples: planned minus received by the GUI (the engine's own count is shown beside it);
+- lost samples (a complete trial): planned minus received by the GUI (the engine's own count is
+  shown beside it). An aborted trial loses nothing: the samples after its end were never
+  acquired, and are reported as "not recorded (aborted)", planned minus the engine's count;
 - loop timing: the loop's ``trial_stats()`` carried by the ``TrialEnded`` event.
 """
 
@@ -51,7 +53,13 @@ class QualityCheck:
 
     @property
     def lost_samples(self) -> int:
-        return self.n_planned - self.n_received
+        """Samples of a complete trial the display did not receive (0 for an ended trial)."""
+        return self.n_planned - self.n_received if self.status == "complete" else 0
+
+    @property
+    def not_recorded(self) -> int:
+        """Planned samples an aborted (or otherwise ended) trial never acquired."""
+        return 0 if self.status == "complete" else max(self.n_planned - self.n_engine, 0)
 
     @property
     def coherence_median(self) -> float | None:
@@ -84,8 +92,13 @@ class QualityCheck:
             ),
             (
                 "samples",
-                f"{self.n_received} of {self.n_planned} received, {self.lost_samples} lost"
-                f" (engine: {self.n_engine})",
+                f"{self.n_received} of {self.n_planned} received, "
+                + (
+                    f"{self.lost_samples} lost"
+                    if self.status == "complete"
+                    else f"{self.not_recorded} not recorded ({self.status})"
+                )
+                + f" (engine: {self.n_engine})",
             ),
         ]
         if "period_error_p50_ms" in lp:

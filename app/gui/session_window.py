@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from PySide6.QtCore import Qt, QTimer
-from PySide6.QtGui import QCloseEvent, QColor, QFont, QKeySequence, QShortcut
+from PySide6.QtGui import QCloseEvent, QColor, QFont, QKeySequence, QScreen, QShortcut
 from PySide6.QtWidgets import (
     QAbstractItemView,
     QCheckBox,
@@ -54,7 +54,8 @@ from steerlab.app.gui.controller import (
 from steerlab.app.gui.dashboard import DEFAULT_SPAN_DEG, SubjectDashboard
 from steerlab.app.gui.live_admittance import LiveAdmittancePanel
 from steerlab.app.gui.livedata import LiveData
-from steerlab.app.gui.plots import CoherencePlot, LivePlots
+from steerlab.app.gui.placement import side_by_side
+from steerlab.app.gui.plots import CoherencePlot, LivePlots, RateMeter
 from steerlab.app.gui.quality import QualityCheck, quality_check
 from steerlab.app.gui.tracker_feed import TrackerFeed
 from steerlab.protocols import events as ev
@@ -80,6 +81,10 @@ _STATE_COLOUR = {
     DONE: "#c8f0c8",
     ABORTED: "#f6c6c6",
 }
+
+
+def _same_screen(a: QScreen | None, b: QScreen | None) -> bool:
+    return a is not None and b is not None and a.geometry() == b.geometry()
 
 
 def dashboard_span(protocol: Protocol) -> float:
@@ -120,6 +125,8 @@ class ExperimenterWindow(QMainWindow):
         )  # fmt: skip
         self.dashboard = dashboard or SubjectDashboard(span_deg=dashboard_span(protocol))
         self.dashboard.angle_source = self._display_angle
+        # Esc stops from the subject's window too: it may have the keyboard focus.
+        QShortcut(QKeySequence(Qt.Key.Key_Escape), self.dashboard, self.emergency_stop)
         self.last_quality: QualityCheck | None = None
         self.events_seen: list[object] = []  # for tests and the log; events are small
         self._closing = False
@@ -136,6 +143,11 @@ class ExperimenterWindow(QMainWindow):
         self.setCentralWidget(central)
         self.resize(1400, 900)
 
+        # The plots' frame rate, always in the status bar: if the machine cannot keep up, the
+        # experimenter sees it (frames actually painted, not requested).
+        self.fps_label = QLabel("plots: —")
+        self.statusBar().addPermanentWidget(self.fps_label)
+        self._fps_meter = RateMeter()
         self.status_timer = QTimer(self)
         self.status_timer.setInterval(500)
         self.status_timer.timeout.connect(self.refresh_status)
@@ -428,6 +440,7 @@ class ExperimenterWindow(QMainWindow):
         elif isinstance(event, ev.TrialEnded):
             self.dashboard.set_active(False, "break")
             self._quality(event)
+            self._show_next()  # the box never shows a finished trial: the next one, at once
             if event.status != "complete":
                 self._alert(f"trial {event.key} aborted: {event.reason}")
             elif c.is_rig_check:
@@ -596,8 +609,18 @@ class ExperimenterWindow(QMainWindow):
         # A loop in another process shows nothing here: the newest sample received instead.
         return self.live.latest("wheel_angle_rad")
 
+    def _show_frame_rate(self, now: float) -> None:
+        fps = self._fps_meter.rate(self.plots.frames.frames, now)
+        if fps is None:
+            return
+        if self.plots.idle:
+            self.fps_label.setText("plots: no new data")
+        else:
+            self.fps_label.setText(f"plots: {fps:.0f} frames/s")
+
     def refresh_status(self) -> None:
         now, total = time.monotonic(), self.live.total_received
+        self._show_frame_rate(now)
         t0, n0 = self._rate_at
         rate = (total - n0) / (now - t0) if now > t0 else 0.0
         self._rate_at = (now, total)
@@ -627,7 +650,52 @@ class ExperimenterWindow(QMainWindow):
     # -- subject display --------------------------------------------------------------------------
     def show_dashboard(self) -> None:
         screen = self.screen_combo.currentData()
-        self.dashboard.show_on(screen, self.fullscreen_check.isChecked())
+        full = self.fullscreen_check.isChecked()
+        if screen is not None and not full and _same_screen(screen, self.screen()):
+            self._place_beside()  # never centred over this window and its stop button
+            return
+        self.dashboard.show_on(screen, full)
+
+    def place_windows(self) -> None:
+        """Put the subject's window where it cannot hide this one (call after show()).
+
+        Without a window manager both windows open at the top-left corner and the dashboard
+        would cover EMERGENCY STOP. With a second screen the dashboard goes there (it is the
+        subject's monitor); on one screen the windows are put side by side
+        (:func:`steerlab.app.gui.placement.side_by_side`).
+        """
+        mine = self.screen()
+        others = [s for s in SubjectDashboard.screens() if not _same_screen(s, mine)]
+        if others:
+            target = others[0]
+            for i in range(self.screen_combo.count()):
+                if _same_screen(self.screen_combo.itemData(i), target):
+                    self.screen_combo.setCurrentIndex(i)
+            self.dashboard.show_on(target, self.fullscreen_check.isChecked())
+            return
+        self._place_beside()
+
+    def _place_beside(self) -> None:
+        geo = self.screen().availableGeometry()
+        d = self.dashboard
+        # Frame sizes (title bar, borders; none without a window manager).
+        ef = self.frameGeometry().size() - self.geometry().size()
+        df = d.frameGeometry().size() - d.geometry().size()
+        hint = self.minimumSizeHint()
+        exp, dash = side_by_side(
+            (geo.x(), geo.y(), geo.width(), geo.height()),
+            (self.width() + ef.width(), self.height() + ef.height()),
+            (hint.width() + ef.width(), hint.height() + ef.height()),
+            (d.width() + df.width(), d.height() + df.height()),
+        )
+        self.move(exp[0], exp[1])  # move() places the frame, resize() sizes the inside
+        self.resize(exp[2] - ef.width(), exp[3] - ef.height())
+        if d.isFullScreen():
+            d.showNormal()
+        d.move(dash[0], dash[1])
+        d.resize(dash[2] - df.width(), dash[3] - df.height())
+        d.show()
+        d.raise_()
 
     # -- closing ----------------------------------------------------------------------------------
     def closeEvent(self, event: QCloseEvent) -> None:  # noqa: N802 (Qt's name)

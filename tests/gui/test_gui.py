@@ -179,7 +179,10 @@ def test_full_trial_pause_resume_then_redo(qtbot, window, short_protocol, tmp_pa
     qtbot.waitUntil(lambda: w.state_label.text() == "engine: waiting for start", timeout=3000)
     assert w.start_button.isEnabled()
     assert w.trial_states()[2] == "pending"
+    # The box shows the next trial as soon as one ends, never the finished one.
     assert plan.trials[1].instructions in w.instructions_label.text()
+    assert f"— trial 2 ({plan.trials[1].label})" in w.instructions_label.text()
+    assert "— trial 1 (" not in w.instructions_label.text()
     q = w.last_quality
     n_planned = plan.setup(first).n_samples
     assert q is not None and q.status == "complete"
@@ -222,6 +225,14 @@ def test_abort_then_start_runs_the_trial_again(qtbot, window):
     assert w.trial_states()[1] == "aborted"
     assert ended(w)[0].reason == "aborted by the experimenter"
     assert w.start_button.isEnabled()
+    # Nothing was lost: the samples after the abort were never acquired, and it says so.
+    q, end = w.last_quality, ended(w)[0]
+    samples = w.quality_labels["samples"].text()
+    assert q is not None and q.status == "aborted" and q.lost_samples == 0
+    assert f"{q.n_planned - end.n_samples} not recorded (aborted)" in samples
+    assert "lost" not in samples
+    # The aborted trial runs again next, and the box says so at once.
+    assert "— trial 1 (" in w.instructions_label.text()
     click(qtbot, w.start_button)
     qtbot.waitUntil(
         lambda: any(isinstance(e, ev.TrialStarted) and e.attempt == 2 for e in w.events_seen),

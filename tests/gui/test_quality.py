@@ -116,7 +116,12 @@ def test_aborted_trial_uses_what_arrived():
                                ch["wheel_angle_rad"], cut)  # fmt: skip
     assert q.n_periods == k == 1
     np.testing.assert_allclose(q.coherence, coh, rtol=1e-10)
-    assert q.n_received == cut and q.lost_samples == setup.n_samples - cut
+    assert q.n_received == cut and q.lost_samples == 0
+    assert q.not_recorded == setup.n_samples - cut
+    # An aborted trial lost nothing: what it never acquired is said to be not recorded.
+    samples = dict(q.rows())["samples"]
+    assert f"{setup.n_samples - cut} not recorded (aborted)" in samples
+    assert "lost" not in samples
     assert q.n_measured == len(deg) == cut - setup.measured_start
     assert q.warnings[0] == "trial aborted"
 
