@@ -235,6 +235,8 @@ def _read_csv(p: Path) -> Recording:
 def _read_session(p: Path, trial: str | None) -> Recording:
     import h5py
 
+    from steerlab.protocols.datafile import read_channel
+
     try:
         f = h5py.File(p, "r", swmr=True)
     except OSError as e:
@@ -267,7 +269,7 @@ def _read_session(p: Path, trial: str | None) -> Recording:
                 raise RigCheckError(f"{src}: missing channel {c}")
 
         def opt(name):
-            return np.asarray(g[name][()], dtype=float) if name in g else None
+            return read_channel(g[name]) if name in g else None
 
         rig = json.loads(f.attrs["rig"]) if "rig" in f.attrs else {}
         max_t = (rig.get("safety") or {}).get("max_torque_nm")
@@ -286,9 +288,9 @@ def _read_session(p: Path, trial: str | None) -> Recording:
         fs = g.attrs.get("fs_hz")
         return Recording(
             source=src,
-            time_s=np.asarray(g["time_s"][()], dtype=float),
-            perturbation_Nm=np.asarray(g["perturbation_torque_Nm"][()], dtype=float),
-            angle_rad=np.asarray(g["wheel_angle_rad"][()], dtype=float),
+            time_s=read_channel(g["time_s"]),
+            perturbation_Nm=read_channel(g["perturbation_torque_Nm"]),
+            angle_rad=read_channel(g["wheel_angle_rad"]),  # counts × scale_factor, if counts
             velocity_rad_s=opt("wheel_velocity_rad_s"),
             motor_command_Nm=opt("motor_command_Nm"),
             max_torque_nm=float(max_t) if max_t else None,

@@ -29,6 +29,7 @@ import numpy as np
 from steerlab.protocols.datafile import (
     FORMAT,
     FORMAT_VERSION,
+    LIBVER,
     MARK_DTYPE,
     SIGN_CONVENTIONS,
     UNITS,
@@ -611,7 +612,7 @@ def write_records(
                     f"subject {subject}"
                 )
             session_attrs[k] = v
-    with h5py.File(path, "w", libver="latest") as f:
+    with h5py.File(path, "w", libver=LIBVER) as f:
         _set_attrs(
             f,
             {
