@@ -322,6 +322,12 @@ class SessionWriter:
             self._identity = (st.st_dev, st.st_ino)
         return self.f
 
+    def _file(self) -> h5py.File:
+        """The file, open (while a trial is written)."""
+        if self.f is None:
+            raise DataFileError(f"{self.path}: the session writer has no open file")
+        return self.f
+
     def _reopen_plain(self) -> h5py.File:
         # Attributes and new groups cannot be written in SWMR mode: close and reopen.
         if self.f is not None and self.f.swmr_mode:
@@ -374,7 +380,7 @@ class SessionWriter:
                         "ended_utc": _now(),
                     },
                 )
-                self.f.flush()
+                self._file().flush()
         except Exception as e:  # the file takes no more; what was flushed stays
             log.error("%s: could not record the writer's failure: %r", self.path, e)
         finally:
@@ -500,7 +506,7 @@ class SessionWriter:
         return int(min(self.chunk_samples, max(64, 2 ** round(np.log2(max(n, 2) / 2)))))
 
     def _create_datasets(self) -> None:
-        g = self.f["trials"][self._key]
+        g = self._file()["trials"][self._key]
         self._counts = {}
         chunk = self._chunk = self._chunk_for_pace()
         self._created = True
@@ -515,8 +521,8 @@ class SessionWriter:
             if name in self._counts:
                 d.attrs[SCALE_ATTR] = q
         create_channel(g, "marks", shape=(0,), maxshape=(None,), dtype=MARK_DTYPE, chunks=(64,))
-        self.f.flush()
-        self.f.swmr_mode = True
+        self._file().flush()
+        self._file().swmr_mode = True
 
     def _samples(self, e: ev.SamplesAcquired) -> None:
         # Both checks every block (a stat and a statvfs, microseconds): the trial ends within
@@ -539,7 +545,7 @@ class SessionWriter:
         now = self.clock()
         if now - self._last_flush >= self.flush_interval_s:
             self._write_out()
-            self.f.flush()
+            self._file().flush()
             self._last_flush = now
         elif self._buffered >= self.chunk_samples:
             self._write_out(whole_chunks=True)
@@ -550,7 +556,7 @@ class SessionWriter:
         its first version's bytes unused in the file."""
         if self._key is None or self.f is None:
             return
-        g = self.f["trials"][self._key]
+        g = self._file()["trials"][self._key]
         if self._buffered and not self._created:
             self._create_datasets()
         n0, n1 = self._written, self._written + self._buffered
@@ -636,7 +642,7 @@ class SessionWriter:
             self._marks = []
         self._open()
         self._write_out()
-        self.f.flush()
+        self._file().flush()
         f = self._reopen_plain()
         g = f["trials"][self._key]
         _set_attrs(
