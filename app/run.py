@@ -326,6 +326,7 @@ def running_sessions(out_dir: str | Path, say=print) -> list[SessionProcess]:
             path.unlink(missing_ok=True)
             say(f"removed a stale pid file {path}: {why}")
             continue
+        assert sp is not None  # read, since why_not_alive answered
         live.append(sp)
     return live
 

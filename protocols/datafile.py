@@ -548,12 +548,16 @@ class SessionWriter:
             self._file().flush()
             self._last_flush = now
         elif self._buffered >= self.chunk_samples:
-            self._write_out(whole_chunks=True)
+            self._append(whole_chunks=True)
 
-    def _write_out(self, *, whole_chunks: bool = False) -> None:
-        """Append what is buffered. ``whole_chunks``: only up to the last chunk boundary (the
-        rest stays buffered): a compressed chunk written part-full and rewritten later leaves
-        its first version's bytes unused in the file."""
+    def _write_out(self) -> None:
+        """Append everything buffered."""
+        self._append(whole_chunks=False)
+
+    def _append(self, whole_chunks: bool) -> None:
+        """Append what is buffered; with ``whole_chunks`` only up to the last chunk boundary
+        (the rest stays buffered): a compressed chunk written part-full and rewritten later
+        leaves its first version's bytes unused in the file."""
         if self._key is None or self.f is None:
             return
         g = self._file()["trials"][self._key]
