@@ -119,9 +119,8 @@ def admittance_response(parameters: Mapping[str, float], f_hz: ArrayLike) -> np.
 def local_zeros(parameters: Mapping[str, float]) -> tuple[complex, complex]:
     """Zeros of the local model, slower (smaller magnitude) first."""
     I, bi, ki, bc, kc = _unpack(parameters)
-    z = np.roots([I, bi + bc, ki + kc])
-    z = sorted(z, key=abs)
-    return complex(z[0]), complex(z[1])
+    zeros = sorted(np.roots([I, bi + bc, ki + kc]), key=abs)
+    return complex(zeros[0]), complex(zeros[1])
 
 
 def _zeros_are_real(parameters: Mapping[str, float]) -> bool:
@@ -293,7 +292,7 @@ class _Schedule:
         self.scale = 0.5 * (self.hi - self.lo) or 1.0
         vander = np.vander((mus - self.centre) / self.scale, self.order + 1)
         self.names = tuple(table)
-        coeffs = []
+        coeffs: list[tuple[float, ...]] = []
         for name in self.names:
             y = np.asarray(table[name], dtype=float)
             if np.all(y == y[0]):

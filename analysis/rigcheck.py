@@ -44,6 +44,7 @@ import tempfile
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -235,6 +236,8 @@ def _read_csv(p: Path) -> Recording:
 def _read_session(p: Path, trial: str | None) -> Recording:
     import h5py
 
+    from steerlab.protocols.datafile import read_channel
+
     try:
         f = h5py.File(p, "r", swmr=True)
     except OSError as e:
@@ -267,7 +270,7 @@ def _read_session(p: Path, trial: str | None) -> Recording:
                 raise RigCheckError(f"{src}: missing channel {c}")
 
         def opt(name):
-            return np.asarray(g[name][()], dtype=float) if name in g else None
+            return read_channel(g[name]) if name in g else None
 
         rig = json.loads(f.attrs["rig"]) if "rig" in f.attrs else {}
         max_t = (rig.get("safety") or {}).get("max_torque_nm")
@@ -286,9 +289,9 @@ def _read_session(p: Path, trial: str | None) -> Recording:
         fs = g.attrs.get("fs_hz")
         return Recording(
             source=src,
-            time_s=np.asarray(g["time_s"][()], dtype=float),
-            perturbation_Nm=np.asarray(g["perturbation_torque_Nm"][()], dtype=float),
-            angle_rad=np.asarray(g["wheel_angle_rad"][()], dtype=float),
+            time_s=read_channel(g["time_s"]),
+            perturbation_Nm=read_channel(g["perturbation_torque_Nm"]),
+            angle_rad=read_channel(g["wheel_angle_rad"]),  # counts × scale_factor, if counts
             velocity_rad_s=opt("wheel_velocity_rad_s"),
             motor_command_Nm=opt("motor_command_Nm"),
             max_torque_nm=float(max_t) if max_t else None,
@@ -641,7 +644,7 @@ class RigFit:
     offset_sem: float | None = None
 
     def to_dict(self) -> dict:
-        d = {p: {"value": self.values[p], "sem": self.sem[p]} for p in PARAMS}
+        d: dict[str, Any] = {p: {"value": self.values[p], "sem": self.sem[p]} for p in PARAMS}
         d["offset_Nm"] = {"value": self.offset_nm, "sem": self.offset_sem}
         d.update(
             {
@@ -681,9 +684,9 @@ def fit_rig(prep: Prepared, *, nominal: Nominal | None = None, eps: float = EPS_
     nominal = nominal or Nominal()
     prob = _Problem.build(prep, eps)
     I0, b0, k0, fc0, off0 = _equation_error_start(prep, eps, nominal)
-    x0 = [I0, b0, k0, max(fc0, 0.0), 0.0, 2e-3, off0]
-    lo = [1e-4, -50.0, -50.0, -20.0, -100.0, 0.0, -50.0]
-    hi = [100.0, 500.0, 5000.0, 20.0, 100.0, 0.2, 50.0]
+    start = [I0, b0, k0, max(fc0, 0.0), 0.0, 2e-3, off0]
+    lower = [1e-4, -50.0, -50.0, -20.0, -100.0, 0.0, -50.0]
+    upper = [100.0, 500.0, 5000.0, 20.0, 100.0, 0.2, 50.0]
     for (a, b), seg in zip(prep.segments, prob.segs, strict=True):
         y, t = seg.y, prep.time_s[a:b]
         if prep.velocity_rad_s is not None:
@@ -691,11 +694,11 @@ def fit_rig(prep: Prepared, *, nominal: Nominal | None = None, eps: float = EPS_
         else:
             j = min(5, len(y) - 1)
             w0 = float((y[j] - y[0]) / (t[j] - t[0]))
-        x0 += [float(y[0]), w0]
-        lo += [-20.0, -200.0]
-        hi += [20.0, 200.0]
-    x0, lo, hi = np.array(x0), np.array(lo), np.array(hi)
-    x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+        start += [float(y[0]), w0]
+        lower += [-20.0, -200.0]
+        upper += [20.0, 200.0]
+    lo, hi = np.array(lower), np.array(upper)
+    x0 = np.clip(np.array(start), lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
     res = least_squares(
         prob.residual, x0, bounds=(lo, hi), x_scale="jac", method="trf",
         xtol=1e-12, ftol=1e-12, gtol=1e-10, max_nfev=400,

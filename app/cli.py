@@ -91,7 +91,7 @@ def _cmd_export(a: argparse.Namespace) -> int:
     from steerlab.protocols.interchange import export_study
 
     paths = export_study(a.dir, a.out, overwrite=a.overwrite, blind=a.blind)
-    for line in export_study.last_skipped:
+    for line in export_study.last_skipped:  # type: ignore[attr-defined]
         print(f"steerlab export: skipped a damaged trial: {line}", file=sys.stderr)
     print(f"exported {len(paths)} trial(s) to {a.out}")
     return 0

@@ -20,6 +20,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+from steerlab.hardware.can.scaling import DriveScaling
 from steerlab.hardware.live import ProcessLoop
 from steerlab.hardware.realtime import realtime_warnings
 from steerlab.hardware.rig import load_rig
@@ -224,7 +225,10 @@ def _run(
             extra.update({"simulated": True, "simulated_subject": loop.physiology})
         if last_check is not None:
             extra["rig_check"] = last_check
-        writer = SessionWriter(path, extra_attributes=extra, lock=lock)
+        # The drive gives the angle as encoder counts × its scaling: stored as those counts
+        # (when exact; docs/data-format.md).
+        quanta = {"wheel_angle_rad": abs(DriveScaling(rig.drive).counts_to_angle(1))}
+        writer = SessionWriter(path, extra_attributes=extra, lock=lock, quanta=quanta)
         engine.subscribe(writer)
         engine.subscribe(_reporter(say, len(plan.trials)))
         holder["engine"] = engine
@@ -322,6 +326,7 @@ def running_sessions(out_dir: str | Path, say=print) -> list[SessionProcess]:
             path.unlink(missing_ok=True)
             say(f"removed a stale pid file {path}: {why}")
             continue
+        assert sp is not None  # read, since why_not_alive answered
         live.append(sp)
     return live
 

@@ -9,6 +9,8 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from steerlab.hardware.sim.physiology import PopulationSpread, make_population
 from steerlab.hardware.sim.rig import simulated_rig
 from steerlab.hardware.sim.world import WorldConfig
@@ -77,6 +79,13 @@ def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | Non
             "world": job.world.to_dict(),
             "wheel_used": job.wheel_used or wheel_record(protocol, None),
         },
+        quanta=sensor_quanta(job.world),
+        # Paced in real time: every 0.5 s, for readers following the file (SWMR) and to lose
+        # at most that much in a crash. At full speed whole compressed chunks are written as
+        # they fill (a part-full one rewritten later would leave its first version unused in
+        # the file, and on a loaded machine 0.5 s of wall time passes within most trials); a
+        # killed simulation re-runs its unfinished trial on --resume anyway.
+        flush_interval_s=0.5 if job.realtime else 30.0,
     )
     engine.subscribe(writer)
     if on_trial is not None:
@@ -91,6 +100,19 @@ def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | Non
         "path": str(path),
         "remaining": len(engine.pending()),
     }
+
+
+def sensor_quanta(world: WorldConfig) -> dict[str, float]:
+    """The simulated sensors' resolution, for the writer to store those channels as counts:
+    the encoder's rad per count (the same expression as the world's kernel) and the column
+    torque sensor's N·m per count."""
+    s = world.sensors
+    out = {}
+    if s.encoder_counts_per_rev:
+        out["wheel_angle_rad"] = 2 * np.pi / s.encoder_counts_per_rev
+    if s.torque_resolution:
+        out["driver_torque_Nm"] = float(s.torque_resolution)
+    return out
 
 
 def _run_subject_reporting(job: SimulationJob, queue) -> dict:

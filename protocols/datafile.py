@@ -41,7 +41,7 @@ from steerlab.protocols.writelock import LockedError, WriterLock, live_writer
 log = logging.getLogger(__name__)
 
 FORMAT = "steerlab-session"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: compressed, counts channels, native attributes (docs/data-format.md)
 
 UNITS = {
     "time_s": "s",
@@ -68,6 +68,14 @@ SIGN_CONVENTIONS = (
     "driver_torque_Nm: the torque the wheel exerts on the hands (S(Tp,θ)/S(Tp,Td) > 0 at low "
     "frequency); grip_force_N: total of both hands."
 )
+#: HDF5 format bounds of every object Steerlab writes. SWMR needs the 1.10 format; capping it
+#: there keeps the files readable by HDF5 1.10–1.14 libraries (R's hdf5r, Octave, MATLAB,
+#: HDFView): "latest" with the HDF5 2.0 that h5py bundles writes objects HDF5 1.10 cannot open.
+LIBVER = ("v110", "v110")
+
+#: Suffix of a counts dataset moved aside while it is rewritten as float64 (see
+#: ``SessionWriter._counts_to_float``).
+COUNTS_ASIDE = "~counts"
 MARK_DTYPE = np.dtype([("sample", "<i8"), ("kind", "S16"), ("detail", "S240")])
 
 
@@ -88,14 +96,36 @@ def _now() -> str:
     return datetime.now(UTC).isoformat(timespec="seconds")
 
 
+def native_attr(v: object) -> object:
+    """An attribute value in a type MATLAB, R and HDFView read as it is (``docs/data-format.md``).
+
+    Booleans become ``uint8`` 0/1 (h5py would write an HDF5 enum, which MATLAB and R read
+    awkwardly); a list of strings becomes an array of variable-length UTF-8 strings and a list
+    of numbers a numeric array; only a structure (a mapping, or a list holding one) is JSON.
+    """
+    if isinstance(v, bool | np.bool_):
+        return np.uint8(bool(v))
+    if isinstance(v, dict):
+        return json.dumps(v)
+    if isinstance(v, list | tuple):
+        if v and all(isinstance(x, str) for x in v):
+            return np.array(v, dtype=h5py.string_dtype())
+        if v and all(isinstance(x, int | float) and not isinstance(x, bool) for x in v):
+            return np.asarray(v)
+        return json.dumps(v)
+    if isinstance(v, np.ndarray):
+        if v.dtype == np.bool_:
+            return v.astype(np.uint8)
+        if v.dtype.kind in "OU":  # str items (an imported session's arrays come back as these)
+            return np.array([str(x) for x in v.ravel()], dtype=h5py.string_dtype()).reshape(v.shape)
+    return v
+
+
 def _set_attrs(obj, attrs: dict) -> None:
     for k, v in attrs.items():
         if v is None:
             continue
-        if isinstance(v, dict | list | tuple):
-            obj.attrs[k] = json.dumps(v)
-        else:
-            obj.attrs[k] = v
+        obj.attrs[k] = native_attr(v)
 
 
 #: Free space the writer keeps in hand: it stops writing samples (a fault that ends the trial)
@@ -138,15 +168,57 @@ def _mb(n: int) -> str:
     return f"{n / 1e6:.1f} MB"
 
 
+#: The compression of every dataset: HDF5's byte shuffle, then deflate (gzip) at this level.
+#: Both are built into HDF5 (no plugin: MATLAB, R, HDFView and h5py read them as they are), and
+#: lossless. Level 1: level 4 gained under 2 % on simulated sessions and cost more time.
+GZIP_LEVEL = 1
+
+
 def create_channel(group: h5py.Group, name: str, **kwargs) -> h5py.Dataset:
-    """Every dataset of a session file is made here: chunked, with HDF5's Fletcher-32 checksum
-    on each chunk, so a damaged chunk is an error when read, never silently wrong numbers.
-    (One place to add a compression filter; SWMR works with both.)"""
+    """Every dataset of a session file is made here: chunked, compressed losslessly (shuffle +
+    gzip, :data:`GZIP_LEVEL`), with HDF5's Fletcher-32 checksum on each stored chunk, so a
+    damaged chunk is an error when read, never silently wrong numbers. SWMR works with all
+    three (appending writes whole chunks)."""
     if "data" in kwargs and "chunks" not in kwargs:
         n = len(kwargs["data"])
         kwargs["chunks"] = (max(1, min(n, 65536)),)
         kwargs.setdefault("maxshape", (None,))
-    return group.create_dataset(name, fletcher32=True, **kwargs)
+    return group.create_dataset(
+        name,
+        fletcher32=True,
+        shuffle=True,
+        compression="gzip",
+        compression_opts=GZIP_LEVEL,
+        **kwargs,
+    )
+
+
+#: Attribute of a dataset stored as integer counts: the value of one count, in the dataset's
+#: ``units`` (CF convention: value = stored × scale_factor).
+SCALE_ATTR = "scale_factor"
+
+
+def read_channel(d: h5py.Dataset) -> np.ndarray:
+    """A channel's values in its units, as float64: integer counts times their
+    ``scale_factor`` (plus ``add_offset``, if any), other datasets as stored."""
+    raw = d[()]
+    if SCALE_ATTR not in d.attrs and "add_offset" not in d.attrs:
+        return np.asarray(raw, dtype=float)
+    scale = float(d.attrs.get(SCALE_ATTR, 1.0))
+    offset = float(d.attrs.get("add_offset", 0.0))
+    return np.asarray(raw, dtype=float) * scale + offset
+
+
+def on_grid(values: np.ndarray, quantum: float) -> np.ndarray | None:
+    """``values`` as int32 counts of ``quantum`` when that is exact (counts × quantum gives back
+    every value bit for bit, as a drive's counts × its scaling do), else None."""
+    v = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(v)):
+        return None
+    counts = np.rint(v / quantum)
+    if np.any(np.abs(counts) > np.iinfo(np.int32).max) or not np.array_equal(counts * quantum, v):
+        return None
+    return counts.astype(np.int32)
 
 
 def creating_path(path: Path) -> Path:
@@ -175,6 +247,11 @@ class SessionWriter:
     - A kill while it is open leaves the superblock's "open for write" flag set; the next writer
       or reader, holding the lock, clears it (as ``h5clear -s``): every flushed sample is kept.
 
+    ``quanta``: channel → the value of one count of the sensor that gives it (the encoder's
+    rad per count, the torque sensor's N·m per count). Such a channel is stored as int32 counts
+    with a ``scale_factor`` attribute when its first block is exactly counts × quantum; if a
+    later block is not, the channel is rewritten as float64 (nothing is rounded).
+
     ``lock``: True takes the lock now and holds it to the end of the session (or :meth:`close`);
     a held :class:`WriterLock` is used and left to the caller to release (``run``, the GUI, which
     hold it across several runs of the engine); False means the caller holds it for this file in
@@ -191,8 +268,13 @@ class SessionWriter:
         extra_attributes: dict | None = None,
         clock=time.monotonic,
         lock: WriterLock | bool = True,
+        quanta: dict[str, float] | None = None,
     ) -> None:
         self.path = Path(path)
+        # channel → the value of one count of the sensor behind it (e.g. the encoder's rad per
+        # count): such a channel is stored as int32 counts with a scale_factor, when exact.
+        self.quanta = {k: float(q) for k, q in (quanta or {}).items() if q and q > 0}
+        self._counts: dict[str, float] = {}  # this trial's channels stored as counts
         self.dtype = dtype
         self.flush_interval_s = flush_interval_s
         self.chunk_samples = chunk_samples
@@ -211,6 +293,8 @@ class SessionWriter:
         self._buf: dict[str, list[np.ndarray]] = {}
         self._marks: list[tuple] = []
         self._buffered = 0
+        self._created = False
+        self._chunk = chunk_samples
         self._written = 0
         self._last_flush = clock()
         self.reserve_bytes = RESERVE_BYTES
@@ -226,16 +310,22 @@ class SessionWriter:
                 except LockedError as e:
                     raise DataFileError(str(e)) from None
             try:
-                self.f = h5py.File(self.path, "a", libver="latest", locking=False)
+                self.f = h5py.File(self.path, "a", libver=LIBVER, locking=False)
             except OSError as e:
                 if "already open for write" not in str(e) or not self.path.exists():
                     raise DataFileError(f"{self.path}: cannot open for writing: {e}") from None
                 # A writer died with the file open (we hold the lock: it is not alive).
                 self.recovered_flags = _clear_crash_flags(self.path)
-                self.f = h5py.File(self.path, "a", libver="latest", locking=False)
+                self.f = h5py.File(self.path, "a", libver=LIBVER, locking=False)
                 self.f.attrs["recovered_utc"] = _now()
             st = os.stat(self.path)
             self._identity = (st.st_dev, st.st_ino)
+        return self.f
+
+    def _file(self) -> h5py.File:
+        """The file, open (while a trial is written)."""
+        if self.f is None:
+            raise DataFileError(f"{self.path}: the session writer has no open file")
         return self.f
 
     def _reopen_plain(self) -> h5py.File:
@@ -290,7 +380,7 @@ class SessionWriter:
                         "ended_utc": _now(),
                     },
                 )
-                self.f.flush()
+                self._file().flush()
         except Exception as e:  # the file takes no more; what was flushed stays
             log.error("%s: could not record the writer's failure: %r", self.path, e)
         finally:
@@ -350,7 +440,7 @@ class SessionWriter:
             # Built under another name and renamed: the name appears complete or not at all.
             tmp = creating_path(self.path)
             tmp.unlink(missing_ok=True)
-            with h5py.File(tmp, "w", libver="latest") as f:
+            with h5py.File(tmp, "w", libver=LIBVER) as f:
                 _set_attrs(f, self._session_attributes(e))
                 f.create_group("trials")
             with open(tmp, "rb+") as fh:
@@ -399,19 +489,40 @@ class SessionWriter:
         f.flush()
         self._key = e.key
         self._buf, self._marks, self._buffered, self._written = {}, [], 0, 0
+        self._created = False  # this trial's datasets (made at its first write)
         self._last_flush = self.clock()
 
-    def _create_datasets(self, channels: dict[str, np.ndarray]) -> None:
-        g = self.f["trials"][self._key]
-        for name in channels:
+    def _chunk_for_pace(self) -> int:
+        """Samples per chunk for this trial, from how fast its samples came.
+
+        Compressed chunks are written once when whole (a simulation at full speed fills
+        ``chunk_samples`` long before ``flush_interval_s``). When a trial is paced in real
+        time, every flush writes the last chunk part-full; each rewrite of a compressed chunk
+        leaves its earlier version's bytes unused in the file (HDF5 does not reuse them in SWMR
+        mode), so the chunk is then about half of what arrives between two flushes."""
+        n = self._buffered
+        if n >= self.chunk_samples:
+            return self.chunk_samples
+        return int(min(self.chunk_samples, max(64, 2 ** round(np.log2(max(n, 2) / 2)))))
+
+    def _create_datasets(self) -> None:
+        g = self._file()["trials"][self._key]
+        self._counts = {}
+        chunk = self._chunk = self._chunk_for_pace()
+        self._created = True
+        for name, parts in self._buf.items():
             dt = "f8" if name in ("time_s", "host_time_s") else self.dtype
-            d = create_channel(
-                g, name, shape=(0,), maxshape=(None,), dtype=dt, chunks=(self.chunk_samples,)
-            )
+            q = self.quanta.get(name)
+            if q is not None and on_grid(np.concatenate(parts), q) is not None:
+                dt = "i4"
+                self._counts[name] = q
+            d = create_channel(g, name, shape=(0,), maxshape=(None,), dtype=dt, chunks=(chunk,))
             d.attrs["units"] = UNITS.get(name, "")
+            if name in self._counts:
+                d.attrs[SCALE_ATTR] = q
         create_channel(g, "marks", shape=(0,), maxshape=(None,), dtype=MARK_DTYPE, chunks=(64,))
-        self.f.flush()
-        self.f.swmr_mode = True
+        self._file().flush()
+        self._file().swmr_mode = True
 
     def _samples(self, e: ev.SamplesAcquired) -> None:
         # Both checks every block (a stat and a statvfs, microseconds): the trial ends within
@@ -421,8 +532,10 @@ class SessionWriter:
         if e.key != self._key:
             raise DataFileError(f"{self.path}: samples for {e.key!r} while writing {self._key!r}")
         if not self._buf:
-            self._create_datasets(e.channels)
+            # The datasets are made at the first write (_write_out): their chunk size depends
+            # on the pace at which the samples come, counted from the first.
             self._buf = {k: [] for k in e.channels}
+            self._last_flush = self.clock()
         if e.channels.keys() != self._buf.keys():
             raise DataFileError(f"{self.path}: trial {e.key}: channels changed within the trial")
         for k, v in e.channels.items():
@@ -430,30 +543,82 @@ class SessionWriter:
         self._buffered += e.n
         self._check_space()  # on failure, this block too goes into the reserve
         now = self.clock()
-        if self._buffered >= self.chunk_samples or now - self._last_flush >= self.flush_interval_s:
+        if now - self._last_flush >= self.flush_interval_s:
             self._write_out()
-            if now - self._last_flush >= self.flush_interval_s:
-                self.f.flush()
-                self._last_flush = now
+            self._file().flush()
+            self._last_flush = now
+        elif self._buffered >= self.chunk_samples:
+            self._append(whole_chunks=True)
 
     def _write_out(self) -> None:
+        """Append everything buffered."""
+        self._append(whole_chunks=False)
+
+    def _append(self, whole_chunks: bool) -> None:
+        """Append what is buffered; with ``whole_chunks`` only up to the last chunk boundary
+        (the rest stays buffered): a compressed chunk written part-full and rewritten later
+        leaves its first version's bytes unused in the file."""
         if self._key is None or self.f is None:
             return
-        g = self.f["trials"][self._key]
-        if self._buffered:
-            n0, n1 = self._written, self._written + self._buffered
+        g = self._file()["trials"][self._key]
+        if self._buffered and not self._created:
+            self._create_datasets()
+        n0, n1 = self._written, self._written + self._buffered
+        if whole_chunks:
+            n1 = n1 // self._chunk * self._chunk
+        if n1 > n0:
             for k, parts in self._buf.items():
+                buffered = np.concatenate(parts)
+                block, rest = buffered[: n1 - n0], buffered[n1 - n0 :]
+                parts.clear()
+                if len(rest):
+                    parts.append(rest)
+                if k in self._counts:
+                    counts = on_grid(block, self._counts[k])
+                    if counts is None:
+                        g = self._counts_to_float(k, block, n0)
+                        continue
+                    block = counts
                 d = g[k]
                 d.resize((n1,))
-                d[n0:n1] = np.concatenate(parts)
-                parts.clear()
-            self._written, self._buffered = n1, 0
+                d[n0:n1] = block
+            self._written, self._buffered = n1, self._buffered - (n1 - n0)
         if self._marks and "marks" in g:
             d = g["marks"]
             m0 = d.shape[0]
             d.resize((m0 + len(self._marks),))
             d[m0:] = np.array(self._marks, dtype=MARK_DTYPE)
             self._marks = []
+
+    def _counts_to_float(self, name: str, block: np.ndarray, n0: int) -> h5py.Group:
+        """A block of a counts channel is not on its grid: rewrite the channel as float64.
+
+        Crash-safe order: the counts are moved aside (one link rename), the float64 dataset is
+        written in full and flushed, then the counts are deleted; a reader that finds only
+        ``NAME~counts`` reads it (:func:`_record_from_group`). Rare (a sensor that is not what
+        ``quanta`` said): it takes the file out of SWMR mode for a moment."""
+        q = self._counts.pop(name)
+        f = self._reopen_plain()
+        g = f["trials"][self._key]
+        aside = name + COUNTS_ASIDE
+        g.move(name, aside)
+        old = g[aside]
+        values = np.concatenate([old[:n0].astype(float) * q, np.asarray(block, dtype=float)])
+        d = create_channel(
+            g, name, shape=(len(values),), maxshape=(None,), dtype="f8", chunks=old.chunks
+        )
+        d[:] = values
+        d.attrs["units"] = old.attrs.get("units", UNITS.get(name, ""))
+        f.flush()
+        del g[aside]
+        # Closed and reopened before SWMR resumes: HDF5's metadata cache in SWMR mode does not
+        # take a dataset deleted and another created in the same open (it crashes later).
+        self._close_file()
+        f = self._open()
+        g = f["trials"][self._key]
+        f.swmr_mode = True
+        log.warning("%s: %s: values off the %g grid; stored as float64", self.path, name, q)
+        return g
 
     def _check_space(self) -> None:
         free = shutil.disk_usage(self.path.parent).free
@@ -481,7 +646,7 @@ class SessionWriter:
             self._marks = []
         self._open()
         self._write_out()
-        self.f.flush()
+        self._file().flush()
         f = self._reopen_plain()
         g = f["trials"][self._key]
         _set_attrs(
@@ -550,8 +715,8 @@ def _open_for_reading(path: Path) -> h5py.File:
         live = live_writer(path)
         try:
             if live is not None:
-                return h5py.File(path, "r", libver="latest", swmr=True, locking=False)
-            return h5py.File(path, "r", libver="latest", locking=False)
+                return h5py.File(path, "r", libver=LIBVER, swmr=True, locking=False)
+            return h5py.File(path, "r", libver=LIBVER, locking=False)
         except OSError as e:
             msg = str(e)
         crash_flag = "already open for write" in msg or "not already open for SWMR" in msg
@@ -727,9 +892,10 @@ def _what_is_damaged(e: BaseException) -> str:
     return f"damaged ({type(e).__name__}: {e})"
 
 
-def _read_dataset(where: str, name: str, d: h5py.Dataset) -> np.ndarray:
+def _read_dataset(where: str, name: str, d: h5py.Dataset, *, values: bool = False) -> np.ndarray:
+    """The dataset as stored, or with ``values`` its values in its units (:func:`read_channel`)."""
     try:
-        return d[()]
+        return read_channel(d) if values else d[()]
     except OSError as e:
         what = (
             "a chunk fails its Fletcher-32 checksum"
@@ -761,9 +927,14 @@ def _record_from_group(
             raise DataFileError(str(e)) from None
     data: dict[str, np.ndarray] = {}
     wanted = None if extra_channels is None else set(CORE_CHANNELS) | set(extra_channels)
-    for name, d in g.items():
+    for stored, d in g.items():
+        name = stored
+        if stored.endswith(COUNTS_ASIDE):  # a writer died rewriting it (_counts_to_float)
+            name = stored[: -len(COUNTS_ASIDE)]
+            if name in g:
+                continue
         if isinstance(d, h5py.Dataset) and name != "marks" and (wanted is None or name in wanted):
-            data[name] = np.asarray(_read_dataset(where, name, d), dtype=float)
+            data[name] = _read_dataset(where, name, d, values=True)
     core = CORE_CHANNELS
     n = min((len(data[c]) for c in core if c in data), default=0)
     for c in core:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from enum import StrEnum
 from typing import Protocol
 
@@ -357,7 +357,8 @@ class SessionEngine:
             self.last_error = e
             self._transition(State.ABORTING, reason)
         finally:
-            gen.close()  # runs the loop's finalizer: zero torque
+            if isinstance(gen, Generator):  # as every loop's run_trial is
+                gen.close()  # runs the loop's finalizer: zero torque
             stats = {}
             try:
                 stats = dict(self.loop.trial_stats())

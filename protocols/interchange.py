@@ -29,6 +29,7 @@ import numpy as np
 from steerlab.protocols.datafile import (
     FORMAT,
     FORMAT_VERSION,
+    LIBVER,
     MARK_DTYPE,
     SIGN_CONVENTIONS,
     UNITS,
@@ -123,11 +124,11 @@ def export_study(
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
-    export_study.last_skipped = skipped
+    export_study.last_skipped = skipped  # type: ignore[attr-defined]
     return [target / p.name for p in written]
 
 
-export_study.last_skipped = []
+export_study.last_skipped = []  # type: ignore[attr-defined]
 
 
 def trial_name(rec: TrialRecord) -> str:
@@ -394,13 +395,13 @@ def _read_csv(path: Path, fs_hz: float, dtypes: dict[str, str]) -> dict[str, np.
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
-        row = raw.count(b"\n", 0, e.start) + 1
+        line_no = raw.count(b"\n", 0, e.start) + 1
         raise InterchangeError(
-            f"{path}: row {row}: not UTF-8 text (byte {e.start}: {e.reason})"
+            f"{path}: row {line_no}: not UTF-8 text (byte {e.start}: {e.reason})"
         ) from None
     if "\x00" in text:
-        row = text.count("\n", 0, text.index("\x00")) + 1
-        raise InterchangeError(f"{path}: row {row}: a NUL character")
+        line_no = text.count("\n", 0, text.index("\x00")) + 1
+        raise InterchangeError(f"{path}: row {line_no}: a NUL character")
     lines = text.splitlines()
     reader = csv.reader(lines)
     try:
@@ -426,7 +427,7 @@ def _read_csv(path: Path, fs_hz: float, dtypes: dict[str, str]) -> dict[str, np.
                 raise InterchangeError(
                     f"{path}: row {i}: {len(row)} cells, the header has {len(header)}"
                 )
-            vals = []
+            vals: list[float] = []
             for j, cell in enumerate(row):
                 try:
                     v = float(cell)
@@ -455,12 +456,12 @@ def _read_csv(path: Path, fs_hz: float, dtypes: dict[str, str]) -> dict[str, np.
                 )
     t = data["time_s"]
     if len(t) >= 2:
-        dt = np.diff(t)
-        bad = np.flatnonzero(np.abs(dt - 1.0 / fs_hz) > 0.01 / fs_hz + 1e-9 * abs(t[1:]).max())
+        steps = np.diff(t)
+        bad = np.flatnonzero(np.abs(steps - 1.0 / fs_hz) > 0.01 / fs_hz + 1e-9 * abs(t[1:]).max())
         if len(bad):
             i = int(bad[0])
             raise InterchangeError(
-                f"{path}: row {i + 3}, column 'time_s': step {dt[i]:.6g} s from the previous "
+                f"{path}: row {i + 3}, column 'time_s': step {steps[i]:.6g} s from the previous "
                 f"row; fs_hz {fs_hz} needs {1 / fs_hz:.6g} s (samples must be evenly spaced, "
                 "no gaps)"
             )
@@ -580,11 +581,11 @@ def import_study(
             os.close(fd)
             tmp_paths.append((Path(tmp), targets[s]))
             write_records(Path(tmp), s, recs, source=str(src))
-        for tmp, final in tmp_paths:
-            os.replace(tmp, final)
+        for tmp_path, final in tmp_paths:
+            os.replace(tmp_path, final)
     finally:
-        for tmp, _ in tmp_paths:
-            Path(tmp).unlink(missing_ok=True)
+        for tmp_path, _ in tmp_paths:
+            tmp_path.unlink(missing_ok=True)
         for lock in locks:
             lock.release()
     return sorted(targets.values())
@@ -611,7 +612,7 @@ def write_records(
                     f"subject {subject}"
                 )
             session_attrs[k] = v
-    with h5py.File(path, "w", libver="latest") as f:
+    with h5py.File(path, "w", libver=LIBVER) as f:
         _set_attrs(
             f,
             {

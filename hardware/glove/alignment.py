@@ -151,7 +151,7 @@ def align_zoh(
     if frame_device_us is not None and host.size:
         clock = fit_clock(host, frame_device_us, clock_window_s)
     if timebase == "device":
-        if clock is None:
+        if clock is None or frame_device_us is None:
             raise ValueError("timebase='device' needs frame_device_us")
         times = clock.device_to_host(unwrap_device_time(frame_device_us))
     elif timebase == "host":

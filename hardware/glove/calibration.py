@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeGuard
 
 from steerlab.hardware.glove.protocol import FORCE_RAW_MAX
 
@@ -60,7 +60,7 @@ class GloveCalibration:
     right: HandCalibration
 
     @classmethod
-    def from_config(cls, config: Mapping[str, Any]) -> GloveCalibration:
+    def from_config(cls, config: Mapping[str, Any] | None) -> GloveCalibration:
         """Build from ``{"left": {...}, "right": {...}}``; every field is required and unknown
         keys are refused, so a typo cannot silently leave a default in place."""
         if not isinstance(config, Mapping):
@@ -113,18 +113,18 @@ def _check_keys(table: Mapping[str, Any], required: tuple[str, ...], where: str)
 
 
 def _check_hand(gain: object, offset: object, hand: str) -> None:
-    if not _is_number(gain) or not math.isfinite(gain) or gain <= 0:  # type: ignore[arg-type]
+    if not _is_number(gain) or not math.isfinite(gain) or gain <= 0:
         raise CalibrationError(
             f"glove calibration: {hand}.gain_n_per_count must be a finite number > 0 "
             f"(N per count), got {gain!r}"
         )
-    if not _is_number(offset) or not 0 <= offset <= FORCE_RAW_MAX:  # type: ignore[operator]
+    if not _is_number(offset) or not 0 <= offset <= FORCE_RAW_MAX:
         raise CalibrationError(
             f"glove calibration: {hand}.offset_counts must be a number in 0..{FORCE_RAW_MAX} "
             f"(raw counts), got {offset!r}"
         )
 
 
-def _is_number(value: object) -> bool:
+def _is_number(value: object) -> TypeGuard[int | float]:
     # bool is an int, but `gain = true` in a config file is a mistake, not a gain of 1.
     return isinstance(value, int | float) and not isinstance(value, bool)

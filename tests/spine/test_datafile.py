@@ -46,7 +46,8 @@ def test_layout_and_attributes(fast_protocol, tmp_path):
         a = f.attrs
         assert a["format"] == "steerlab-session" and a["subject"] == "S04"
         assert a["latin_square_row"] == 3
-        assert json.loads(a["condition_order"]) == list(plan.condition_order)
+        # Native types (docs/data-format.md): a string array, booleans as uint8 0/1.
+        assert list(a["condition_order"]) == list(plan.condition_order)
         assert "driver_torque_Nm: the torque the wheel exerts on the hands" in a["sign_conventions"]
         assert a["protocol_toml"] == fast_protocol.source_text
         assert a["software_version"]
@@ -54,7 +55,8 @@ def test_layout_and_attributes(fast_protocol, tmp_path):
         assert keys == ["01_BT8_fam_a1", "02_BT8_rep1_a1", "03_BT8_rep2_a1"]
         g = f["trials"]["02_BT8_rep1_a1"]
         assert g.attrs["condition"] == "BT8" and g.attrs["repetition"] == 1
-        assert not g.attrs["familiarization"] and g.attrs["trial_index"] == 2
+        assert g.attrs["familiarization"] == 0 and g.attrs["familiarization"].dtype == np.uint8
+        assert g.attrs["trial_index"] == 2
         assert g.attrs["fs_hz"] == 200.0 and g.attrs["status"] == "complete"
         assert g.attrs["measured_start"] == 400 and g.attrs["measured_stop"] == 400 + 9000
         assert json.loads(g.attrs["units"])["wheel_angle_rad"] == "rad"
