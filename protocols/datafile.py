@@ -110,6 +110,35 @@ class WriterFailure(TrialFault):
     the trial. The message names the file and the cause."""
 
 
+#: Where the samples a failed writer could not put into the session file go when the session
+#: file's folder cannot take them either: a memory-backed folder (RAM, not the full disk).
+def _fallback_dirs() -> list[Path]:
+    out = [Path(d) for d in (os.environ.get("XDG_RUNTIME_DIR"), "/dev/shm") if d]
+    import tempfile
+
+    out.append(Path(tempfile.gettempdir()))
+    return [d for d in out if d.is_dir()]
+
+
+def unsaved_path(session_path: str | Path, key: str) -> Path:
+    """The file next to ``session_path`` that holds trial ``key``'s samples its writer could not
+    write (``SessionWriter``, after a failure): a NumPy ``.npz`` (one array per channel, plus
+    ``first_sample``, the trial sample index of its first row, ``session_file`` and
+    ``trial_key``)."""
+    p = Path(session_path)
+    return p.with_name(f"{p.name}.{key.replace('/', '_')}.unsaved.npz")
+
+
+def load_unsaved(path: str | Path) -> tuple[int, dict[str, np.ndarray]]:
+    """(first sample index, channels) of an unsaved-samples file (:func:`unsaved_path`)."""
+    with np.load(path, allow_pickle=False) as z:
+        first = int(z["first_sample"])
+        return first, {k: z[k] for k in z.files if k not in _UNSAVED_META}
+
+
+_UNSAVED_META = ("first_sample", "session_file", "trial_key")
+
+
 def session_bytes(plan, channels: int = 11, chunk_samples: int = 8192, dtype_bytes: int = 4) -> int:
     """Bytes the session file of ``plan`` takes at most (whole chunks: HDF5 allocates them)."""
     total = 256 * 1024  # file metadata, protocol text, attributes
@@ -259,27 +288,40 @@ class SessionWriter:
     # -- events -----------------------------------------------------------------------------------
     def __call__(self, event: object) -> None:
         if self.failure is not None:
-            return  # already failed (and reported); the file is closed
+            # Failed (and reported); the file is closed. The failed trial's samples that still
+            # come (the loop's last blocks, taken before it stopped) join the unsaved ones.
+            self._keep_unsaved(event)
+            return
         in_trial = self._key is not None
         try:
             self._dispatch(event)
         except WriterFailure as e:
-            raise self._fail(str(e), space_left=True) from None
+            raise self._fail(str(e), space_left=True, event=event) from None
         except DataFileError:
             raise
         except Exception as e:  # h5py: OSError, RuntimeError, …
             if not in_trial and not isinstance(event, ev.SamplesAcquired):
                 raise
-            raise self._fail(f"{self.path}: {type(e).__name__}: {e}", space_left=False) from e
+            raise self._fail(
+                f"{self.path}: {type(e).__name__}: {e}", space_left=False, event=event
+            ) from e
 
-    def _fail(self, what: str, *, space_left: bool) -> WriterFailure:
-        """Keep what can be kept, close the file, and return the fault to raise."""
+    def _fail(self, what: str, *, space_left: bool, event: object = None) -> WriterFailure:
+        """Keep what can be kept, close the file, and return the fault to raise.
+
+        Samples given to the writer that the file did not take (a failed write, or a block that
+        arrived with the failure) are not dropped: they go to :func:`unsaved_path` next to the
+        file or, if that folder cannot take them either, to a memory-backed folder
+        (:attr:`unsaved_file` says where; the fault's message names it)."""
         self.failure = what
         f, key = self.f, self._key
         try:
             if f is not None and key is not None and self._still_ours():
                 if space_left:
-                    self._write_out()  # what is buffered: the reserve is for it
+                    try:
+                        self._write_out()  # what is buffered: the reserve is for it
+                    except Exception as e:
+                        log.error("%s: buffered samples not written: %r", self.path, e)
                 g = self._reopen_plain()["trials"][key]
                 _set_attrs(
                     g,
@@ -299,8 +341,89 @@ class SessionWriter:
             except Exception as e:
                 log.error("%s: could not close after the writer's failure: %r", self.path, e)
                 self.f = None
+        if key is not None:
+            self._unsaved = {
+                "key": key,
+                "first": self._written,
+                "parts": {k: list(v) for k, v in self._buf.items()},
+                "n": self._buffered,
+            }
+            self._buf, self._buffered = {}, 0
+            if (
+                isinstance(event, ev.SamplesAcquired)
+                and event.start >= self._unsaved["first"] + (self._unsaved["n"])
+            ):
+                self._keep_unsaved(event)  # it failed before the block was taken
+            self._dump_unsaved()
         self._key = None
-        return WriterFailure(f"session writer failed: {what}")
+        where = (
+            f"; {self.unsaved_samples} samples it could not write are in {self.unsaved_file}"
+            if self.unsaved_file is not None and self.unsaved_samples
+            else ""
+        )
+        return WriterFailure(f"session writer failed: {what}{where}")
+
+    # -- after a failure: the samples the file did not take -------------------------------------
+    #: Samples of the failed trial that are not in the session file but in :attr:`unsaved_file`.
+    unsaved_samples = 0
+    #: Where they are (None: nothing unsaved, or no folder could take them; then logged).
+    unsaved_file: Path | None = None
+    _unsaved: dict | None = None
+
+    def _keep_unsaved(self, event: object) -> None:
+        u = self._unsaved
+        if u is None:
+            return
+        if isinstance(event, ev.SamplesAcquired) and event.key == u["key"]:
+            if event.start != u["first"] + u["n"]:
+                log.error(
+                    "%s: trial %s: samples from %d, expected %d; kept as they come",
+                    self.path, event.key, event.start, u["first"] + u["n"],
+                )  # fmt: skip
+            if not u["parts"]:
+                u["parts"] = {k: [] for k in event.channels}
+            for k, v in event.channels.items():
+                u["parts"].setdefault(k, []).append(np.array(v))
+            u["n"] += event.n
+        elif isinstance(event, ev.TrialEnded | ev.SessionEnded):
+            self._dump_unsaved()
+
+    def _dump_unsaved(self) -> None:
+        """Write the unsaved samples (all of them, again: the file is replaced as it grows)."""
+        u = self._unsaved
+        if u is None or not u["n"]:
+            return
+        arrays = {k: np.concatenate(v) for k, v in u["parts"].items() if v}
+        meta = {
+            "first_sample": np.int64(u["first"]),
+            "session_file": np.str_(str(self.path)),
+            "trial_key": np.str_(u["key"]),
+        }
+        first = unsaved_path(self.path, u["key"])
+        where = [first] if self.unsaved_file is None else [self.unsaved_file]
+        where += [d / f"steerlab-{first.name}" for d in _fallback_dirs()]
+        for target in where:
+            tmp = target.with_name(target.name + ".part")
+            try:
+                with open(tmp, "wb") as fh:
+                    np.savez(fh, **arrays, **meta)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                os.replace(tmp, target)
+            except OSError as e:
+                log.error("%s: unsaved samples not written to %s: %r", self.path, target, e)
+                try:
+                    tmp.unlink(missing_ok=True)
+                except OSError:
+                    pass
+                continue
+            if self.unsaved_file is not None and target != self.unsaved_file:
+                log.error(
+                    "%s: unsaved samples moved from %s to %s", self.path, self.unsaved_file, target
+                )
+            self.unsaved_file, self.unsaved_samples = target, u["n"]
+            return
+        log.error("%s: %d unsaved samples could not be written anywhere", self.path, u["n"])
 
     def _still_ours(self) -> bool:
         try:
@@ -446,6 +569,9 @@ class SessionWriter:
                 d = g[k]
                 d.resize((n1,))
                 d[n0:n1] = np.concatenate(parts)
+            # Cleared only once every channel is written: after a failed write the buffer
+            # still holds the whole block (it goes to the unsaved-samples file).
+            for parts in self._buf.values():
                 parts.clear()
             self._written, self._buffered = n1, 0
         if self._marks and "marks" in g:
