@@ -169,8 +169,8 @@ def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None)
 
                 writer._write_out = failing
             elif where == "disk":
+                disk.fill()  # another program fills the disk: full from now
                 info["t"] = time.monotonic()
-                disk.fill()
             elif where == "engine":
                 info["t"] = time.monotonic()
                 threading.Thread(target=eng.emergency_stop).start()

@@ -212,7 +212,12 @@ class RigDevices:
             faults = d.active_faults
             if not faults:
                 return "drive not ready"
-            more = f" (and {len(faults) - 1} more)" if len(faults) > 1 else ""
+            # The others by kind and code, so that the reason names every fault there was (two
+            # can come together: a starved host's heartbeat gap with the drive's own EMCY).
+            others = [
+                f"{f.kind} 0x{f.code:04X}" if f.code is not None else f.kind for f in faults[1:]
+            ]
+            more = f" (and {len(others)} more: {', '.join(others)})" if others else ""
             return f"drive fault: {faults[0]}{more}"
         if self.hands_off:
             return None
@@ -457,12 +462,18 @@ class ProcessLoop:
         rig: RigConfig | str | None = rig_path
         lab_control = None
         if simulated_devices == "process":
-            loaded = load_rig(rig_path)
+            try:
+                loaded = load_rig(rig_path)
+            except Exception as e:  # the same message as from the loop process
+                raise RigError(f"the rig could not be brought up: {type(e).__name__}: {e}") from e
             if loaded.simulated:
                 from steerlab.hardware.can.config import UDP_LOOPBACK
                 from steerlab.hardware.sim.lab import LabProcess
 
-                self.lab = LabProcess(rig_path, subject=subject_number)
+                try:
+                    self.lab = LabProcess(rig_path, subject=subject_number)
+                except Exception as e:
+                    raise RigError(f"the simulated devices did not come up: {e}") from e
                 # The host sees a lab: the drive on the lab's bus, the glove on its pty.
                 rig = replace(
                     loaded,

@@ -281,6 +281,7 @@ class SessionWriter:
 
     def close(self) -> None:
         """Close the file and release the writer lock (when this writer took it)."""
+        self._dump_unsaved()  # after a failure: the samples the file did not take
         self._close_file()
         if self._own_lock is not None:
             self._own_lock.release()
@@ -351,14 +352,17 @@ class SessionWriter:
             self._buf, self._buffered = {}, 0
             if (
                 isinstance(event, ev.SamplesAcquired)
-                and event.start >= self._unsaved["first"] + (self._unsaved["n"])
+                and event.start >= self._unsaved["first"] + self._unsaved["n"]
             ):
                 self._keep_unsaved(event)  # it failed before the block was taken
-            self._dump_unsaved()
+            # Written at the trial's end, after the loop has stopped (zero torque first); where
+            # is chosen now, so that the fault's message can name it.
+            if self._unsaved["n"]:
+                self.unsaved_file = self._unsaved_target()
         self._key = None
         where = (
-            f"; {self.unsaved_samples} samples it could not write are in {self.unsaved_file}"
-            if self.unsaved_file is not None and self.unsaved_samples
+            f"; the samples it could not write go to {self.unsaved_file}"
+            if self.unsaved_file is not None and self._unsaved and self._unsaved["n"]
             else ""
         )
         return WriterFailure(f"session writer failed: {what}{where}")
@@ -388,10 +392,24 @@ class SessionWriter:
         elif isinstance(event, ev.TrialEnded | ev.SessionEnded):
             self._dump_unsaved()
 
+    def _unsaved_target(self) -> Path:
+        """Next to the session file if its folder has room for the samples (generously: the
+        trial's samples so far, again, and the reserve), else a memory-backed folder."""
+        u = self._unsaved
+        first = unsaved_path(self.path, u["key"])
+        need = RESERVE_BYTES + 16 * (u["first"] + u["n"] + 60_000) * max(1, len(u["parts"]))
+        for d in [first.parent, *_fallback_dirs()]:
+            try:
+                if shutil.disk_usage(d).free > need:
+                    return first if d == first.parent else d / f"steerlab-{first.name}"
+            except OSError:
+                continue
+        return first
+
     def _dump_unsaved(self) -> None:
         """Write the unsaved samples (all of them, again: the file is replaced as it grows)."""
         u = self._unsaved
-        if u is None or not u["n"]:
+        if u is None or not u["n"] or u.get("dumped") == u["n"]:
             return
         arrays = {k: np.concatenate(v) for k, v in u["parts"].items() if v}
         meta = {
@@ -400,7 +418,7 @@ class SessionWriter:
             "trial_key": np.str_(u["key"]),
         }
         first = unsaved_path(self.path, u["key"])
-        where = [first] if self.unsaved_file is None else [self.unsaved_file]
+        where = [self.unsaved_file or first]
         where += [d / f"steerlab-{first.name}" for d in _fallback_dirs()]
         for target in where:
             tmp = target.with_name(target.name + ".part")
@@ -422,6 +440,7 @@ class SessionWriter:
                     "%s: unsaved samples moved from %s to %s", self.path, self.unsaved_file, target
                 )
             self.unsaved_file, self.unsaved_samples = target, u["n"]
+            u["dumped"] = u["n"]
             return
         log.error("%s: %d unsaved samples could not be written anywhere", self.path, u["n"])
 

@@ -30,8 +30,12 @@ def lenient_rig(tmp_path):
     text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
     p = tmp_path / "rig.toml"
     text = text.replace("host_heartbeat_timeout_ms = 80 ", "host_heartbeat_timeout_ms = 100 ")
+    text = text.replace("heartbeat_timeout_ms = 250 ", "heartbeat_timeout_ms = 2000 ")
+    text = text.replace("max_missed_tpdo = 20 ", "max_missed_tpdo = 500 ")
+    text = text.replace("glove_timeout_s = 0.25 ", "glove_timeout_s = 2.0 ")
     p.write_text(text.replace("loop_stall_s = 0.02 ", "loop_stall_s = 0.5 "))
-    assert "loop_stall_s = 0.5" in p.read_text()
+    for edited in ("loop_stall_s = 0.5", "glove_timeout_s = 2.0", "max_missed_tpdo = 500"):
+        assert edited in p.read_text()
     return p
 
 
@@ -61,14 +65,30 @@ def _when(eng, start_samples, action):
 
 
 def test_session_in_the_loop_process_is_real_time(process_loop, short_protocol, tmp_path):
-    assert process_loop.realtime["switch_interval_s"] == 2e-4
+    # Behaviour, not timing (timing: benchmarks/live_loop.py): the loop process has the
+    # real-time measures its tuning reports, and runs a whole session cycle by cycle.
+    rt = process_loop.realtime
+    assert rt["switch_interval_s"] == 2e-4
+    pid = process_loop._proc.pid
+    fifo = rt["sched_fifo_priority"]
+    if isinstance(fifo, int):  # granted (root or CAP_SYS_NICE): the process really is FIFO
+        assert os.sched_getscheduler(pid) == os.SCHED_FIFO
+        assert os.sched_getparam(pid).sched_priority == fifo
+    else:
+        assert fifo.startswith("not permitted")
+    if rt["mlockall"] is True:  # its memory is locked
+        status = open(f"/proc/{pid}/status").read()
+        locked_kb = int(status.split("VmLck:")[1].split()[0])
+        assert locked_kb > 0
+    assert rt["cpus"] == sorted(os.sched_getaffinity(pid))
     eng = _engine(process_loop, short_protocol, tmp_path / "S02.h5")
     assert eng.run() is State.DONE
     recs = SessionFile(tmp_path / "S02.h5").records()
     assert [r.status for r in recs] == ["complete", "complete"]
     stats = json.loads(recs[0].attrs["loop_stats"])
-    assert stats["cycles"] == 6500
-    assert stats["period_error_p50_ms"] < 0.5  # timing quality itself: benchmarks/live_loop.py
+    assert stats["cycles"] == stats["samples"] == 6500
+    # The samples are the cycles, one per period, in order.
+    np.testing.assert_array_equal(recs[0].time_s, np.arange(6500) / 1000.0)
 
 
 def test_block_size_reaches_the_loop_process(lenient_rig, short_protocol, tmp_path):
