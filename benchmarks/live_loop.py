@@ -10,9 +10,11 @@ for the whole trial: how much load the loop tolerates. A trial that cannot keep 
 aborted *safely*: ``aborted_safely`` is true when the trial ended aborted and the simulated
 drive then applies zero torque (read at the drive, in the lab process).
 
-``--simulated-devices in_loop`` runs the simulated drive and glove unit inside the loop's
-process (the layout before issue 14), for comparison. ``--trace`` records per cycle when each
-phase ended and reports why cycles were late (``hardware.loop.trace_summary``).
+``--no-realtime``: the loop (and the simulated devices) without SCHED_FIFO and mlockall, as for
+a user without the rights: with ``--stress`` the loop then competes with the stress processes
+on equal terms. ``--simulated-devices in_loop`` runs the simulated drive and glove unit inside
+the loop's process (the layout before issue 14), for comparison. ``--trace`` records per cycle
+when each phase ended and reports why cycles were late (``hardware.loop.trace_summary``).
 
 Last line: one JSON object with, among others, ``p99_ms``, ``late_fraction``, ``lost_samples``,
 ``rt_priority``, ``mlocked``, ``cpu`` (the CPUs the loop process may run on).
@@ -32,6 +34,7 @@ from pathlib import Path
 
 from steerlab.benchmarks.machine import machine
 from steerlab.hardware.live import ProcessLoop
+from steerlab.hardware.realtime import REALTIME_ENV
 from steerlab.protocols.datafile import SessionFile, SessionWriter
 from steerlab.protocols.engine import SessionEngine
 from steerlab.protocols.protocol import load_protocol
@@ -60,6 +63,11 @@ def main(argv: list[str]) -> dict:
     ap.add_argument("--simulated-devices", choices=("process", "in_loop"), default="process")
     ap.add_argument("--trace", action="store_true", help="why cycles were late (per phase)")
     ap.add_argument("--profile", metavar="FILE", help="cProfile the loop thread into FILE")
+    ap.add_argument(
+        "--no-realtime",
+        action="store_true",
+        help="no SCHED_FIFO, no mlockall (as a user without the rights)",
+    )
     a = ap.parse_args(argv)
     protocol = load_protocol()
     plan = build_plan(protocol, 1)
@@ -69,6 +77,8 @@ def main(argv: list[str]) -> dict:
         os.environ["STEERLAB_LOOP_TRACE"] = "1"
     if a.profile:
         os.environ["STEERLAB_LOOP_PROFILE"] = str(Path(a.profile).resolve())
+    if a.no_realtime:
+        os.environ[REALTIME_ENV] = "off"
     load_before = os.getloadavg()
     drive_after: dict = {}
     with tempfile.TemporaryDirectory() as tmp:

@@ -47,11 +47,21 @@ def single_threaded_math_for_children():
                 os.environ[k] = v
 
 
+#: ``STEERLAB_REALTIME=off`` in the environment: no SCHED_FIFO and no mlockall even where
+#: permitted, as for a user without the rights (``python -m benchmarks live_loop --no-realtime``,
+#: and the tests of the start-up warnings, on a machine where the tests run as root).
+REALTIME_ENV = "STEERLAB_REALTIME"
+
+
 def tune_process(*, fifo: bool = True, lock_memory: bool = True) -> dict:
     """Apply what is permitted; return what was applied, for the session file."""
     applied: dict[str, object] = {}
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     applied["switch_interval_s"] = SWITCH_INTERVAL_S
+    if os.environ.get(REALTIME_ENV) == "off":
+        fifo = lock_memory = False
+        applied["sched_fifo_priority"] = f"not requested ({REALTIME_ENV}=off)"
+        applied["mlockall"] = f"not requested ({REALTIME_ENV}=off)"
     if fifo and hasattr(os, "sched_setscheduler"):
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))

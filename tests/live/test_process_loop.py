@@ -270,3 +270,27 @@ def test_emergency_stop_from_the_keyboard(tmp_path, short_protocol_file, lenient
     (r,) = SessionFile(out / "S01.h5").records()
     expected = "keyboard" if how == "enter" else "SIGINT"
     assert r.status == "aborted" and expected in r.abort_reason
+
+
+def test_steerlab_run_warns_when_the_loop_is_not_real_time(
+    tmp_path, short_protocol_file, lenient_rig
+):
+    """Without real-time priority and locked memory (here refused on purpose, as for a user
+    without the rights) ``steerlab run`` says so at start-up, and the session file records
+    what the loop got."""
+    out = tmp_path / "s"
+    args = ["--out", out, "--protocol", short_protocol_file, "--rig", lenient_rig]
+    p = _steerlab("run", "--subject", 1, *args, env={**os.environ, "STEERLAB_REALTIME": "off"})
+    try:
+        assert wait_for_samples(out / "S01.h5", 500, time.monotonic() + 60)
+        p.send_signal(signal.SIGINT)
+        stdout, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    lines = [ln for ln in (stdout + err).splitlines() if "warning:" in ln]
+    assert any("without real-time priority" in ln and "STEERLAB_REALTIME=off" in ln for ln in lines)
+    assert any("memory is not locked" in ln for ln in lines), stdout + err
+    with h5py.File(out / "S01.h5", "r") as f:
+        tuning = json.loads(f.attrs["realtime_tuning"])
+    assert tuning["mlockall"] == "not requested (STEERLAB_REALTIME=off)"
