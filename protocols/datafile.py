@@ -281,7 +281,8 @@ class SessionWriter:
 
     def close(self) -> None:
         """Close the file and release the writer lock (when this writer took it)."""
-        self._dump_unsaved()  # after a failure: the samples the file did not take
+        if self._salvage is not None:  # failed, and the trial's end never came
+            self._finish_failure()
         self._close_file()
         if self._own_lock is not None:
             self._own_lock.release()
@@ -289,9 +290,9 @@ class SessionWriter:
     # -- events -----------------------------------------------------------------------------------
     def __call__(self, event: object) -> None:
         if self.failure is not None:
-            # Failed (and reported); the file is closed. The failed trial's samples that still
-            # come (the loop's last blocks, taken before it stopped) join the unsaved ones.
-            self._keep_unsaved(event)
+            # Failed (and reported). The failed trial's samples that still come (the loop's
+            # last blocks, taken before it stopped) are kept; its end closes the file.
+            self._after_failure(event)
             return
         in_trial = self._key is not None
         try:
@@ -308,19 +309,73 @@ class SessionWriter:
             ) from e
 
     def _fail(self, what: str, *, space_left: bool, event: object = None) -> WriterFailure:
-        """Keep what can be kept, close the file, and return the fault to raise.
+        """Return the fault to raise at once (the engine stops the loop: zero torque first);
+        what can be kept is kept when the trial has ended (:meth:`_finish_failure`).
 
-        Samples given to the writer that the file did not take (a failed write, or a block that
-        arrived with the failure) are not dropped: they go to :func:`unsaved_path` next to the
-        file or, if that folder cannot take them either, to a memory-backed folder
-        (:attr:`unsaved_file` says where; the fault's message names it)."""
+        Samples given to the writer are never dropped: the block that arrived with the failure
+        and the loop's last blocks, taken before it stopped, join the buffer; at the trial's end
+        the buffer goes into the file when the failure left room for it (the disk-full reserve),
+        else to :func:`unsaved_path` next to the file or, if that folder cannot take them, to a
+        memory-backed folder (:attr:`unsaved_file`; the fault's message names it)."""
         self.failure = what
-        f, key = self.f, self._key
+        key = self._key
+        if key is None:
+            self._close_quietly()
+            return WriterFailure(f"session writer failed: {what}")
+        self._salvage = space_left
+        self._keep_failed(event)  # the block it failed on, if the buffer does not have it
+        where = ""
+        if not space_left and self._buffered:
+            self.unsaved_file = self._unsaved_target(key)
+            where = f"; the samples it could not write go to {self.unsaved_file}"
+        return WriterFailure(f"session writer failed: {what}{where}")
+
+    #: After a failure, until the trial's end: True/False (whether the buffer may still go into
+    #: the file); None: nothing pending.
+    _salvage: bool | None = None
+    #: Samples of the failed trial that are not in the session file but in :attr:`unsaved_file`.
+    unsaved_samples = 0
+    #: Where they are (None: nothing unsaved, or no folder could take them; then logged).
+    unsaved_file: Path | None = None
+    _unsaved: dict | None = None
+
+    def _keep_failed(self, event: object) -> None:
+        """A failed trial's samples that still come (in order) join the buffer."""
+        if not isinstance(event, ev.SamplesAcquired) or event.key != self._key:
+            return
+        expected = self._written + self._buffered
+        if event.start < expected:
+            return  # the buffer has it already
+        if event.start > expected:
+            log.error(
+                "%s: trial %s: samples from %d, expected %d; kept as they come",
+                self.path, event.key, event.start, expected,
+            )  # fmt: skip
+        if not self._buf:
+            self._buf = {k: [] for k in event.channels}
+        for k, v in event.channels.items():
+            self._buf.setdefault(k, []).append(np.array(v))
+        self._buffered += event.n
+
+    def _after_failure(self, event: object) -> None:
+        if self._salvage is None:
+            return
+        if isinstance(event, ev.SamplesAcquired):
+            self._keep_failed(event)
+        elif isinstance(event, ev.TrialEnded | ev.SessionEnded):
+            self._finish_failure()
+
+    def _finish_failure(self) -> None:
+        """Keep what can be kept (the loop has stopped): the buffer into the file if there is
+        room, the trial marked aborted, the file closed; what the file did not take into the
+        unsaved-samples file."""
+        space_left, self._salvage = self._salvage, None
+        key = self._key
         try:
-            if f is not None and key is not None and self._still_ours():
+            if self.f is not None and self._still_ours():
                 if space_left:
                     try:
-                        self._write_out()  # what is buffered: the reserve is for it
+                        self._write_out()  # the reserve is for this
                     except Exception as e:
                         log.error("%s: buffered samples not written: %r", self.path, e)
                 g = self._reopen_plain()["trials"][key]
@@ -328,7 +383,7 @@ class SessionWriter:
                     g,
                     {
                         "status": STATUS_ABORTED,
-                        "abort_reason": f"session writer failed: {what}",
+                        "abort_reason": f"session writer failed: {self.failure}",
                         "n_samples": self._written,
                         "ended_utc": _now(),
                     },
@@ -337,67 +392,39 @@ class SessionWriter:
         except Exception as e:  # the file takes no more; what was flushed stays
             log.error("%s: could not record the writer's failure: %r", self.path, e)
         finally:
-            try:
-                self.close()
-            except Exception as e:
-                log.error("%s: could not close after the writer's failure: %r", self.path, e)
-                self.f = None
-        if key is not None:
+            self._close_quietly()
+        if self._buffered:
             self._unsaved = {
                 "key": key,
                 "first": self._written,
                 "parts": {k: list(v) for k, v in self._buf.items()},
                 "n": self._buffered,
             }
-            self._buf, self._buffered = {}, 0
-            if (
-                isinstance(event, ev.SamplesAcquired)
-                and event.start >= self._unsaved["first"] + self._unsaved["n"]
-            ):
-                self._keep_unsaved(event)  # it failed before the block was taken
-            # Written at the trial's end, after the loop has stopped (zero torque first); where
-            # is chosen now, so that the fault's message can name it.
-            if self._unsaved["n"]:
-                self.unsaved_file = self._unsaved_target()
-        self._key = None
-        where = (
-            f"; the samples it could not write go to {self.unsaved_file}"
-            if self.unsaved_file is not None and self._unsaved and self._unsaved["n"]
-            else ""
-        )
-        return WriterFailure(f"session writer failed: {what}{where}")
-
-    # -- after a failure: the samples the file did not take -------------------------------------
-    #: Samples of the failed trial that are not in the session file but in :attr:`unsaved_file`.
-    unsaved_samples = 0
-    #: Where they are (None: nothing unsaved, or no folder could take them; then logged).
-    unsaved_file: Path | None = None
-    _unsaved: dict | None = None
-
-    def _keep_unsaved(self, event: object) -> None:
-        u = self._unsaved
-        if u is None:
-            return
-        if isinstance(event, ev.SamplesAcquired) and event.key == u["key"]:
-            if event.start != u["first"] + u["n"]:
+            if self.unsaved_file is None:
+                self.unsaved_file = self._unsaved_target(key)
                 log.error(
-                    "%s: trial %s: samples from %d, expected %d; kept as they come",
-                    self.path, event.key, event.start, u["first"] + u["n"],
+                    "%s: %d samples the file did not take go to %s",
+                    self.path, self._buffered, self.unsaved_file,
                 )  # fmt: skip
-            if not u["parts"]:
-                u["parts"] = {k: [] for k in event.channels}
-            for k, v in event.channels.items():
-                u["parts"].setdefault(k, []).append(np.array(v))
-            u["n"] += event.n
-        elif isinstance(event, ev.TrialEnded | ev.SessionEnded):
             self._dump_unsaved()
+        self._buf, self._buffered, self._key = {}, 0, None
 
-    def _unsaved_target(self) -> Path:
+    def _close_quietly(self) -> None:
+        try:
+            self._close_file()
+        except Exception as e:
+            log.error("%s: could not close after the writer's failure: %r", self.path, e)
+            self.f = None
+        if self._own_lock is not None:
+            self._own_lock.release()
+
+    def _unsaved_target(self, key: str) -> Path:
         """Next to the session file if its folder has room for the samples (generously: the
-        trial's samples so far, again, and the reserve), else a memory-backed folder."""
-        u = self._unsaved
-        first = unsaved_path(self.path, u["key"])
-        need = RESERVE_BYTES + 16 * (u["first"] + u["n"] + 60_000) * max(1, len(u["parts"]))
+        trial's samples so far, again, a minute more, and the reserve), else a memory-backed
+        folder."""
+        first = unsaved_path(self.path, key)
+        n = self._written + self._buffered + 60_000
+        need = RESERVE_BYTES + 16 * n * max(1, len(self._buf))
         for d in [first.parent, *_fallback_dirs()]:
             try:
                 if shutil.disk_usage(d).free > need:
