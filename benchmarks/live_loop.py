@@ -122,6 +122,7 @@ def main(argv: list[str]) -> dict:
         "glove_dropped_frames": status.get("glove_dropped_frames"),
         "glove_rate_hz": status.get("glove_rate_hz"),
         "loop_process_cpu_s": round(stats.get("loop_process_cpu_s", float("nan")), 2),
+        "lab_process_cpu_s": drive_after.get("cpu_s"),  # the simulated devices' (whole life)
         "engine_process_cpu_s": round((cpu1.user + cpu1.system) - (cpu0.user + cpu0.system), 2),
         "wall_s": round(wall, 2),
         "realtime_tuning": tuning,

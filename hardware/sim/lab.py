@@ -184,6 +184,7 @@ class SimulatedLab:
             "sync_count": n.sync_count,
             "enabled_syncs": n.enabled_syncs,
             "errors": [repr(e) for e in n.errors],
+            "cpu_s": sum(os.times()[:2]),  # this process's, user + system
         }
 
     def inject(self, fault: str) -> None:
