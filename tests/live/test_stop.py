@@ -167,13 +167,15 @@ def test_steerlab_stop_by_subject_with_two_real_sessions(tmp_path, short_protoco
         # the second session is already running: a third for S02 is refused
         third = _steerlab("run", "--subject", 2, "--out", out, "--protocol",
                           short_protocol_file, "--rig", rig, "--resume")  # fmt: skip
-        _, err = third.communicate(timeout=60)
+        # Generous: two real-time sessions (loop and simulated lab processes under SCHED_FIFO)
+        # leave an ordinary process little CPU on a 2-core machine to start Python in.
+        _, err = third.communicate(timeout=300)
         # Refused, naming the running session: by its writer lock (which names the process
         # and its command line) or, without one, by its pid file.
         assert third.returncode == 2, err
         assert "already running" in err or f"being written by process {runs[2].pid}" in err, err
         s = _steerlab("stop", "--out", out, "--subject", 2)
-        stdout, err = s.communicate(timeout=30)
+        stdout, err = s.communicate(timeout=300)
         assert s.returncode == 0, err
         assert f"S02 (process {runs[2].pid}" in stdout
         assert runs[2].wait(60) == 3
