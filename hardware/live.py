@@ -338,9 +338,13 @@ def _worker(
     import gc
 
     from steerlab.hardware.realtime import tune_process
+    from steerlab.hardware.safety import warm_up
 
-    # Before the rig's threads start, so that they inherit the priority (the CAN reader that
-    # latches each SYNC's answer is one of them).
+    # The heavy start-up first (imports above, compiling the loop's kernel), so that this
+    # process does not hold a CPU at real-time priority for seconds (it starved a running
+    # session's processes); then the priority, before the rig's threads start, so that they
+    # inherit it (the CAN reader that latches each SYNC's answer is one of them).
+    warm_up()
     tuning = tune_process()
     try:
         if not isinstance(rig, RigConfig):

@@ -253,8 +253,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     from steerlab.hardware.realtime import tune_process
 
-    tune_process()  # the drive node answers each SYNC: give it what the host may have
     lab = SimulatedLab(args.rig, args.channel, args.subject)
+    # Once built (seconds of CPU for a subject's world): the drive node answers each SYNC, so
+    # its threads get what the host may have.
+    tune_process()
     key = os.environ.pop(AUTHKEY_ENV, "")
     control = lab.serve(bytes.fromhex(key)) if key else None
     out = sys.stdout
