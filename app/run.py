@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from steerlab.hardware.live import ProcessLoop
-from steerlab.hardware.realtime import realtime_warnings
+from steerlab.hardware.realtime import realtime_summary, realtime_warnings
 from steerlab.hardware.rig import load_rig
 from steerlab.protocols.datafile import (
     SessionFile,
@@ -216,6 +216,7 @@ def _run(
     try:
         say(f"bringing up the rig ({rig.source}) ...")
         loop = ProcessLoop(rig_path, subject_number)
+        say(realtime_summary(loop.realtime))
         for w in realtime_warnings(loop.realtime):
             say(f"warning: {w}")
         engine = SessionEngine(plan, loop, attempts=attempts, pace_breaks=breaks)

@@ -105,6 +105,17 @@ def _fifo_for_other_threads() -> None:
             pass
 
 
+def realtime_summary(applied: dict) -> str:
+    """One line for the terminal at start-up: what the loop process got."""
+    fifo = applied.get("sched_fifo_priority")
+    prio = f"SCHED_FIFO {fifo}" if isinstance(fifo, int) else f"no SCHED_FIFO ({fifo})"
+    lock = applied.get("mlockall")
+    mem = "memory locked" if lock is True else f"memory not locked ({lock})"
+    cpus = applied.get("cpus")
+    where = f"CPUs {cpus}" if cpus is not None else "CPUs unknown"
+    return f"control loop: {prio}, {mem}, {where}"
+
+
 def realtime_warnings(applied: dict) -> list[str]:
     """What the loop process did not get, as warnings for the terminal and the GUI (empty when
     it got its real-time priority and locked memory, and has a core besides the others)."""

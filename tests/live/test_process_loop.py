@@ -291,6 +291,7 @@ def test_steerlab_run_warns_when_the_loop_is_not_real_time(
     lines = [ln for ln in (stdout + err).splitlines() if "warning:" in ln]
     assert any("without real-time priority" in ln and "STEERLAB_REALTIME=off" in ln for ln in lines)
     assert any("memory is not locked" in ln for ln in lines), stdout + err
+    assert "control loop: no SCHED_FIFO (not requested" in stdout + err
     with h5py.File(out / "S01.h5", "r") as f:
         tuning = json.loads(f.attrs["realtime_tuning"])
     assert tuning["mlockall"] == "not requested (STEERLAB_REALTIME=off)"
