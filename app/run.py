@@ -237,6 +237,9 @@ def _run(
             say("press Enter (or Ctrl-C) for an emergency stop")
         state = engine.run()
     finally:
+        # The pid file goes before the stop signals stop being ours: a `steerlab stop` that
+        # finds it must not kill this process with SIGUSR1's default action.
+        _release(me)
         for s, h in previous.items():
             signal.signal(s, h)
         if loop is not None:
