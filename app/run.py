@@ -22,7 +22,7 @@ from pathlib import Path
 
 from steerlab.hardware.can.scaling import DriveScaling
 from steerlab.hardware.live import ProcessLoop
-from steerlab.hardware.realtime import realtime_warnings
+from steerlab.hardware.realtime import realtime_summary, realtime_warnings
 from steerlab.hardware.rig import load_rig
 from steerlab.protocols.datafile import (
     SessionFile,
@@ -217,6 +217,7 @@ def _run(
     try:
         say(f"bringing up the rig ({rig.source}) ...")
         loop = ProcessLoop(rig_path, subject_number)
+        say(realtime_summary(loop.realtime))
         for w in realtime_warnings(loop.realtime):
             say(f"warning: {w}")
         engine = SessionEngine(plan, loop, attempts=attempts, pace_breaks=breaks)
@@ -240,6 +241,9 @@ def _run(
             say("press Enter (or Ctrl-C) for an emergency stop")
         state = engine.run()
     finally:
+        # The pid file goes before the stop signals stop being ours: a `steerlab stop` that
+        # finds it must not kill this process with SIGUSR1's default action.
+        _release(me)
         for s, h in previous.items():
             signal.signal(s, h)
         if loop is not None:

@@ -11,7 +11,9 @@ Per fault, a row ``{"name", "zero_torque_ms", "lost_samples", "status", "reason"
 plus ``goal_met``. Goal (issue 14): zero_torque_ms ≤ 100, or ≤ timeout_ms + 100 where there is
 one; 0 lost samples; status aborted with a reason naming the fault.
 
-``lost_samples``: samples the loop took (its ``samples`` statistic) that are not in the file;
+``lost_samples``: samples the loop took (its ``samples`` statistic) that are not in the file nor,
+after a writer failure, in the writer's unsaved-samples file that continues it
+(``samples_kept_in`` says where they are);
 for the killed host, the drive's control cycles in OPERATION ENABLED minus the 300 zeroing
 cycles minus the file's samples (±1: the finalizer's zero-torque SYNC is one more cycle).
 """
@@ -35,7 +37,7 @@ from steerlab.hardware.live import ZEROING_S, ProcessLoop
 from steerlab.hardware.rig import load_rig
 from steerlab.hardware.sim.lab import LabProcess, host_rig_text
 from steerlab.protocols import events as ev
-from steerlab.protocols.datafile import SessionFile, SessionWriter
+from steerlab.protocols.datafile import SessionFile, SessionWriter, load_unsaved
 from steerlab.protocols.engine import SessionEngine
 from steerlab.protocols.protocol import parse_protocol
 from steerlab.protocols.session import build_plan
@@ -167,8 +169,8 @@ def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None)
 
                 writer._write_out = failing
             elif where == "disk":
+                disk.fill()  # another program fills the disk: full from now
                 info["t"] = time.monotonic()
-                disk.fill()
             elif where == "engine":
                 info["t"] = time.monotonic()
                 threading.Thread(target=eng.emergency_stop).start()
@@ -193,12 +195,21 @@ def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None)
         status, reason, n_file = r.status, r.abort_reason, r.n_samples
     except Exception as e:  # the file itself is a result
         status, reason, n_file = "unreadable", f"{type(e).__name__}: {e}", 0
+    # Samples the failed writer could not put in the file: in its unsaved-samples file (next
+    # to the session file, or in a memory-backed folder), counted only where they continue the
+    # file's samples without a gap.
+    n_unsaved, kept_in = 0, "session file"
+    if writer.unsaved_file is not None:
+        first, unsaved = load_unsaved(writer.unsaved_file)
+        if first == n_file:
+            n_unsaved = len(unsaved["time_s"])
+            kept_in = f"session file + {writer.unsaved_file.name} in {writer.unsaved_file.parent}"
     if disk is not None:
         disk.close()
     if where == "kill" or loop_samples is None:
         lost = (syncs1 - syncs0) - round(ZEROING_S * 1000) - n_file
     else:
-        lost = loop_samples - n_file
+        lost = loop_samples - n_file - n_unsaved
     zero_ms = None
     if t_inject is not None and st["applied_torque_nm"] == 0.0 and st["zero_torque_since"]:
         zero_ms = round((st["zero_torque_since"] - t_inject) * 1e3, 1)
@@ -218,6 +229,8 @@ def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None)
         "reason": reason,
         "timeout_ms": timeout_ms,
         "goal_met": ok,
+        "samples_kept_in": kept_in,
+        "unsaved_samples": n_unsaved,
         "torque_before_nm": info.get("torque_before_nm"),
         "drive_state_after": st["state"],
     }

@@ -2,8 +2,11 @@
 
 :class:`RigDevices` opens what a rig file names: the CiA 402 drive on its CAN bus and the glove
 unit on its serial port. For the simulated rig, the same drivers talk to a simulated drive node
-on python-can's virtual bus (hosting the simulated world) and to a pseudo-terminal fed by the
-simulated glove unit: every byte and frame is the lab's.
+(hosting the simulated world) and to a pseudo-terminal fed by the simulated glove unit: every
+byte and frame is the lab's. :class:`ProcessLoop` runs those simulated devices in a process of
+their own (``hardware.sim.lab``, over the ``udp_loopback`` bus), so that the loop's process holds
+only what it holds in the lab; ``RigDevices`` built directly on a simulated rig file hosts them
+in its own process (python-can's virtual bus), for tests.
 
 :class:`ProcessLoop` is the engine's :class:`protocols.engine.TrialLoop` for a real-time rig. The
 control loop runs in a separate process, so the session file writer and the GUI, which run in
@@ -89,10 +92,15 @@ class WorldPlant:
 
 
 class RigDevices:
-    """Everything a rig file names, opened and ready; ``close()`` releases it all."""
+    """Everything a rig file names, opened and ready; ``close()`` releases it all.
 
-    def __init__(self, rig: RigConfig, *, subject_number: int = 1) -> None:
+    ``lab``: the control socket of a simulated lab process (``hardware.sim.lab.LabClient``) whose
+    devices ``rig`` (a lab's rig: udp_loopback channel, pty) reaches; the trial's setup and the
+    sensor zeroing's "let go" are passed on to its simulated subject."""
+
+    def __init__(self, rig: RigConfig, *, subject_number: int = 1, lab=None) -> None:
         self.rig = rig
+        self.lab = lab
         self.plant: WorldPlant | None = None
         self.node: SimulatedDrive | None = None
         self.sensor_node: SimulatedTorqueSensor | None = None
@@ -137,6 +145,8 @@ class RigDevices:
                     self.sensor_node = SimulatedTorqueSensor(sensor_bus, drive_cfg, plant)
                 self.glove_sim = SimulatedGloveUnit(self.plant.grip, rig.glove.calibration).start()
                 port = self.glove_sim.port
+            if lab is not None:
+                self.physiology = lab.call("physiology")
             self.drive_config = drive_cfg
             bus = open_bus(drive_cfg)
             self._buses.append(bus)
@@ -159,11 +169,19 @@ class RigDevices:
         self.hands_off = setup.hands_off
         if self.plant is not None:
             self.plant.begin_trial(setup)
+        if self.lab is not None:
+            self.lab.call("begin_trial", setup)
+
+    def _release(self, released: bool) -> None:
+        """The simulated subject lets go of the wheel (or holds it again)."""
+        if self.plant is not None:
+            self.plant.released = released
+        if self.lab is not None:
+            self.lab.call("release" if released else "hold")
 
     def zero_torque_sensor(self) -> None:
         """With the wheel released, average the column torque and take it as the offset."""
-        if self.plant is not None:
-            self.plant.released = True
+        self._release(True)
         self.drive.torque_sensor.clear_recent()
         try:
             period = 1.0 / self.rig.loop_rate_hz
@@ -181,8 +199,7 @@ class RigDevices:
                 self.drive.sync()
             self.drive.torque_sensor.zero()
         finally:
-            if self.plant is not None:
-                self.plant.released = False
+            self._release(False)
 
     def health(self) -> str | None:
         """A reason to stop the trial now, or None."""
@@ -195,7 +212,12 @@ class RigDevices:
             faults = d.active_faults
             if not faults:
                 return "drive not ready"
-            more = f" (and {len(faults) - 1} more)" if len(faults) > 1 else ""
+            # The others by kind and code, so that the reason names every fault there was (two
+            # can come together: a starved host's heartbeat gap with the drive's own EMCY).
+            others = [
+                f"{f.kind} 0x{f.code:04X}" if f.code is not None else f.kind for f in faults[1:]
+            ]
+            more = f" (and {len(others)} more: {', '.join(others)})" if others else ""
             return f"drive fault: {faults[0]}{more}"
         if self.hands_off:
             return None
@@ -254,6 +276,7 @@ class RigDevices:
             lambda: self.glove_sim and self.glove_sim.close(),
             lambda: self.node and self.node.close(),
             lambda: self.sensor_node and self.sensor_node.close(),
+            lambda: self.lab and self.lab.close(),
         ):
             try:
                 closer()
@@ -310,22 +333,34 @@ class SampleRing:
 
 
 def _worker(
-    rig_path, subject_number: int, conn, out: mp.Queue, estop, block_s: float, ring=None
+    rig, subject_number: int, conn, out: mp.Queue, estop, block_s: float, ring=None, lab=None
 ) -> None:
     import gc
 
     from steerlab.hardware.realtime import tune_process
+    from steerlab.hardware.safety import warm_up
 
-    # Before the rig's threads start, so that they inherit the priority (the simulated drive
-    # node answering each SYNC is one of them).
+    # The heavy start-up first (imports above, compiling the loop's kernel), so that this
+    # process does not hold a CPU at real-time priority for seconds (it starved a running
+    # session's processes); then the priority, before the rig's threads start, so that they
+    # inherit it (the CAN reader that latches each SYNC's answer is one of them).
+    warm_up()
     tuning = tune_process()
     try:
-        devices = RigDevices(load_rig(rig_path), subject_number=subject_number)
+        if not isinstance(rig, RigConfig):
+            rig = load_rig(rig)
+        client = None
+        if lab is not None:
+            from steerlab.hardware.sim.lab import LabClient
+
+            client = LabClient(*lab)
+        devices = RigDevices(rig, subject_number=subject_number, lab=client)
     except Exception as e:
         out.put(("error", f"{type(e).__name__}: {e}"))
         return
     try:
         loop = devices.device_loop(estop=estop, block_s=block_s)
+        loop.trace = bool(os.environ.get("STEERLAB_LOOP_TRACE"))  # benchmarks/live_loop --trace
         if ring is not None:
             loop.sample_sink = ring.sink()
         status_every = max(1, round(STATUS_PERIOD_S / loop.block_s))
@@ -347,6 +382,12 @@ def _worker(
             # A writable perturbation, so that an injected fault ("nan") can reach it.
             setup = replace(msg[1], perturbation_nm=np.array(msg[1].perturbation_nm))
             gc.disable()  # no collection pauses inside the loop; collect between trials
+            profile_to = os.environ.get("STEERLAB_LOOP_PROFILE")  # benchmarks/live_loop --profile
+            if profile_to:
+                import cProfile
+
+                profiler = cProfile.Profile()
+                profiler.enable()
             try:
                 for i, block in enumerate(loop.run_trial(setup, control)):
                     out.put(("block", block))
@@ -367,6 +408,9 @@ def _worker(
             except Exception as e:
                 fault = f"internal error in the live loop: {type(e).__name__}: {e}"
             finally:
+                if profile_to:
+                    profiler.disable()
+                    profiler.dump_stats(profile_to)
                 gc.enable()
                 gc.collect()
             cpu = os.times()
@@ -399,7 +443,11 @@ def _inject(fault: str, devices: RigDevices, setup: TrialSetup) -> float:
 
 
 class ProcessLoop:
-    """A real-time rig's control loop, run in its own process (see the module docstring)."""
+    """A real-time rig's control loop, run in its own process (see the module docstring).
+
+    For a simulated rig file the simulated devices get a process of their own
+    (:class:`hardware.sim.lab.LabProcess`, :attr:`lab`) unless ``simulated_devices="in_loop"``
+    (the loop's process then hosts them, on python-can's virtual bus, as before issue 14)."""
 
     def __init__(
         self,
@@ -408,20 +456,68 @@ class ProcessLoop:
         *,
         start_timeout_s: float = 60.0,
         block_s: float = DEFAULT_BLOCK_S,
+        simulated_devices: str = "process",
     ):
+        if simulated_devices not in ("process", "in_loop"):
+            raise ValueError(
+                f"simulated_devices: 'process' or 'in_loop', not {simulated_devices!r}"
+            )
+        self.lab = None
+        rig: RigConfig | str | None = rig_path
+        lab_control = None
+        if simulated_devices == "process":
+            try:
+                loaded = load_rig(rig_path)
+            except Exception as e:  # the same message as from the loop process
+                raise RigError(f"the rig could not be brought up: {type(e).__name__}: {e}") from e
+            if loaded.simulated:
+                from steerlab.hardware.can.config import UDP_LOOPBACK
+                from steerlab.hardware.sim.lab import LabProcess
+
+                try:
+                    self.lab = LabProcess(rig_path, subject=subject_number)
+                except Exception as e:
+                    raise RigError(f"the simulated devices did not come up: {e}") from e
+                # The host sees a lab: the drive on the lab's bus, the glove on its pty.
+                rig = replace(
+                    loaded,
+                    drive=replace(loaded.drive, interface=UDP_LOOPBACK, channel=self.lab.channel),
+                    glove=replace(loaded.glove, port=self.lab.pty),
+                    simulation=None,
+                )
+                lab_control = (self.lab.control_address, self.lab.authkey)
+        try:
+            self._start(rig, subject_number, start_timeout_s, block_s, lab_control)
+        except BaseException:
+            if self.lab is not None:
+                self.lab.close()
+            raise
+
+    def _start(self, rig, subject_number, start_timeout_s, block_s, lab_control) -> None:
         ctx = mp.get_context("spawn")
         self._estop = ctx.Event()
         self._ring = SampleRing(ctx)
         self._conn, child = ctx.Pipe()
         self._q: mp.Queue = ctx.Queue()
         self._stats: dict = {}
+        self._delivered = 0
+        self._unhanded: list[dict] = []
         self.status: dict = {}
         self.injected: dict[str, float] = {}
         self.physiology: dict | None = None
         self._lock = threading.Lock()
         self._proc = ctx.Process(
             target=_worker,
-            args=(rig_path, subject_number, child, self._q, self._estop, block_s, self._ring),
+            args=(
+                rig,
+                subject_number,
+                child,
+                self._q,
+                self._estop,
+                block_s,
+                self._ring,
+                lab_control,
+            ),
             name="steerlab-loop",
             daemon=True,
         )
@@ -460,7 +556,8 @@ class ProcessLoop:
         self._estop.clear()
         self._stats = {}
         self._ring.count.value = 0
-        delivered = 0
+        self._delivered = 0
+        self._unhanded = []
         with self._lock:
             self._conn.send(("trial", setup))
         done = threading.Event()
@@ -474,7 +571,7 @@ class ProcessLoop:
                 except queue.Empty:
                     if not self._proc.is_alive():
                         # What it took but never handed over is in the shared ring.
-                        rest = self._ring.since(delivered)
+                        rest = self._ring.since(self._delivered)
                         if rest is not None:
                             yield rest
                         raise TrialFault(
@@ -482,7 +579,7 @@ class ProcessLoop:
                         ) from None
                     continue
                 if kind == "block":
-                    delivered += len(payload["time_s"])
+                    self._delivered += len(payload["time_s"])
                     yield payload
                 elif kind == "status":
                     self.status = payload
@@ -516,12 +613,25 @@ class ProcessLoop:
                 kind, payload = self._q.get(timeout=0.1)
             except queue.Empty:
                 if not self._proc.is_alive():
+                    rest = self._ring.since(self._delivered)
+                    if rest is not None:
+                        self._unhanded.append(rest)
                     return
                 continue
-            if kind == "end":
+            if kind == "block":
+                # Recorded before the loop stopped: kept for take_unhanded(), not dropped.
+                self._unhanded.append(payload)
+                self._delivered += len(payload["time_s"])
+            elif kind == "end":
                 self._stats = payload["stats"]
                 self.status = payload["status"]
                 return
+
+    def take_unhanded(self) -> list[dict]:
+        """The blocks the loop recorded after the engine let go of the trial (it stops at its
+        next cycle): the engine hands them on to its subscribers like the others."""
+        out, self._unhanded = self._unhanded, []
+        return out
 
     def _forward(self, control: LoopControl, done: threading.Event) -> None:
         """Pass pause and abort on to the loop process, even while the engine is not pulling."""
@@ -545,3 +655,5 @@ class ProcessLoop:
         if self._proc.is_alive():
             self._proc.terminate()
             self._proc.join(5)
+        if self.lab is not None:
+            self.lab.close()

@@ -6,7 +6,10 @@ What a lab does for hard guarantees, and what Steerlab does:
   (``hardware.live.ProcessLoop``);
 - a short interpreter switch interval, so other threads hand the GIL back within 0.2 ms: always;
 - garbage collection paused during a trial: always (the loop process collects between trials);
-- ``SCHED_FIFO`` priority for the loop process's threads: when permitted (root, CAP_SYS_NICE);
+- ``SCHED_FIFO`` priority for the loop process's threads: when permitted (root, CAP_SYS_NICE),
+  and only once the process's heavy start-up (imports, compiling the kernels, building the
+  simulated world) is done: a FIFO process busy for seconds starves every other of its
+  priority on that CPU (a second session's start-up stopped the first one's glove stream);
 - memory locked with ``mlockall`` (no page faults inside the loop): when permitted;
 - isolated cores (``isolcpus``, cpusets) and a PREEMPT_RT kernel: the lab's system
   administration, not something a program should do to its host.
@@ -47,17 +50,32 @@ def single_threaded_math_for_children():
                 os.environ[k] = v
 
 
+#: ``STEERLAB_REALTIME=off`` in the environment: no SCHED_FIFO and no mlockall even where
+#: permitted, as for a user without the rights (``python -m benchmarks live_loop --no-realtime``,
+#: and the tests of the start-up warnings, on a machine where the tests run as root).
+REALTIME_ENV = "STEERLAB_REALTIME"
+
+
 def tune_process(*, fifo: bool = True, lock_memory: bool = True) -> dict:
     """Apply what is permitted; return what was applied, for the session file."""
     applied: dict[str, object] = {}
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     applied["switch_interval_s"] = SWITCH_INTERVAL_S
+    if os.environ.get(REALTIME_ENV) == "off":
+        fifo = lock_memory = False
+        applied["sched_fifo_priority"] = f"not requested ({REALTIME_ENV}=off)"
+        applied["mlockall"] = f"not requested ({REALTIME_ENV}=off)"
     if fifo and hasattr(os, "sched_setscheduler"):
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))
             applied["sched_fifo_priority"] = FIFO_PRIORITY
         except OSError as e:
             applied["sched_fifo_priority"] = f"not permitted ({e.strerror})"
+        else:
+            # Linux sets a thread's policy, not the process's: the threads started before
+            # (e.g. the simulated lab's, started before its heavy set-up) join in. Threads
+            # started later inherit it.
+            _fifo_for_other_threads()
     if lock_memory:
         try:
             libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
@@ -72,6 +90,30 @@ def tune_process(*, fifo: bool = True, lock_memory: bool = True) -> dict:
     except (AttributeError, OSError):
         pass
     return applied
+
+
+def _fifo_for_other_threads() -> None:
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return
+    for tid in tids:
+        try:
+            if os.sched_getscheduler(tid) == os.SCHED_OTHER:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))
+        except OSError:  # ended meanwhile
+            pass
+
+
+def realtime_summary(applied: dict) -> str:
+    """One line for the terminal at start-up: what the loop process got."""
+    fifo = applied.get("sched_fifo_priority")
+    prio = f"SCHED_FIFO {fifo}" if isinstance(fifo, int) else f"no SCHED_FIFO ({fifo})"
+    lock = applied.get("mlockall")
+    mem = "memory locked" if lock is True else f"memory not locked ({lock})"
+    cpus = applied.get("cpus")
+    where = f"CPUs {cpus}" if cpus is not None else "CPUs unknown"
+    return f"control loop: {prio}, {mem}, {where}"
 
 
 def realtime_warnings(applied: dict) -> list[str]:

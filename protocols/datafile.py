@@ -140,6 +140,35 @@ class WriterFailure(TrialFault):
     the trial. The message names the file and the cause."""
 
 
+#: Where the samples a failed writer could not put into the session file go when the session
+#: file's folder cannot take them either: a memory-backed folder (RAM, not the full disk).
+def _fallback_dirs() -> list[Path]:
+    out = [Path(d) for d in (os.environ.get("XDG_RUNTIME_DIR"), "/dev/shm") if d]
+    import tempfile
+
+    out.append(Path(tempfile.gettempdir()))
+    return [d for d in out if d.is_dir()]
+
+
+def unsaved_path(session_path: str | Path, key: str) -> Path:
+    """The file next to ``session_path`` that holds trial ``key``'s samples its writer could not
+    write (``SessionWriter``, after a failure): a NumPy ``.npz`` (one array per channel, plus
+    ``first_sample``, the trial sample index of its first row, ``session_file`` and
+    ``trial_key``)."""
+    p = Path(session_path)
+    return p.with_name(f"{p.name}.{key.replace('/', '_')}.unsaved.npz")
+
+
+def load_unsaved(path: str | Path) -> tuple[int, dict[str, np.ndarray]]:
+    """(first sample index, channels) of an unsaved-samples file (:func:`unsaved_path`)."""
+    with np.load(path, allow_pickle=False) as z:
+        first = int(z["first_sample"])
+        return first, {k: z[k] for k in z.files if k not in _UNSAVED_META}
+
+
+_UNSAVED_META = ("first_sample", "session_file", "trial_key")
+
+
 def session_bytes(plan, channels: int = 11, chunk_samples: int = 8192, dtype_bytes: int = 4) -> int:
     """Bytes the session file of ``plan`` takes at most (whole chunks: HDF5 allocates them)."""
     total = 256 * 1024  # file metadata, protocol text, attributes
@@ -342,6 +371,8 @@ class SessionWriter:
 
     def close(self) -> None:
         """Close the file and release the writer lock (when this writer took it)."""
+        if self._salvage is not None:  # failed, and the trial's end never came
+            self._finish_failure()
         self._close_file()
         if self._own_lock is not None:
             self._own_lock.release()
@@ -349,33 +380,100 @@ class SessionWriter:
     # -- events -----------------------------------------------------------------------------------
     def __call__(self, event: object) -> None:
         if self.failure is not None:
-            return  # already failed (and reported); the file is closed
+            # Failed (and reported). The failed trial's samples that still come (the loop's
+            # last blocks, taken before it stopped) are kept; its end closes the file.
+            self._after_failure(event)
+            return
         in_trial = self._key is not None
         try:
             self._dispatch(event)
         except WriterFailure as e:
-            raise self._fail(str(e), space_left=True) from None
+            raise self._fail(str(e), space_left=True, event=event) from None
         except DataFileError:
             raise
         except Exception as e:  # h5py: OSError, RuntimeError, …
             if not in_trial and not isinstance(event, ev.SamplesAcquired):
                 raise
-            raise self._fail(f"{self.path}: {type(e).__name__}: {e}", space_left=False) from e
+            raise self._fail(
+                f"{self.path}: {type(e).__name__}: {e}", space_left=False, event=event
+            ) from e
 
-    def _fail(self, what: str, *, space_left: bool) -> WriterFailure:
-        """Keep what can be kept, close the file, and return the fault to raise."""
+    def _fail(self, what: str, *, space_left: bool, event: object = None) -> WriterFailure:
+        """Return the fault to raise at once (the engine stops the loop: zero torque first);
+        what can be kept is kept when the trial has ended (:meth:`_finish_failure`).
+
+        Samples given to the writer are never dropped: the block that arrived with the failure
+        and the loop's last blocks, taken before it stopped, join the buffer; at the trial's end
+        the buffer goes into the file when the failure left room for it (the disk-full reserve),
+        else to :func:`unsaved_path` next to the file or, if that folder cannot take them, to a
+        memory-backed folder (:attr:`unsaved_file`; the fault's message names it)."""
         self.failure = what
-        f, key = self.f, self._key
+        key = self._key
+        if key is None:
+            self._close_quietly()
+            return WriterFailure(f"session writer failed: {what}")
+        self._salvage = space_left
+        self._keep_failed(event)  # the block it failed on, if the buffer does not have it
+        where = ""
+        if not space_left and self._buffered:
+            self.unsaved_file = self._unsaved_target(key)
+            where = f"; the samples it could not write go to {self.unsaved_file}"
+        return WriterFailure(f"session writer failed: {what}{where}")
+
+    #: After a failure, until the trial's end: True/False (whether the buffer may still go into
+    #: the file); None: nothing pending.
+    _salvage: bool | None = None
+    #: Samples of the failed trial that are not in the session file but in :attr:`unsaved_file`.
+    unsaved_samples = 0
+    #: Where they are (None: nothing unsaved, or no folder could take them; then logged).
+    unsaved_file: Path | None = None
+    _unsaved: dict | None = None
+
+    def _keep_failed(self, event: object) -> None:
+        """A failed trial's samples that still come (in order) join the buffer."""
+        if not isinstance(event, ev.SamplesAcquired) or event.key != self._key:
+            return
+        expected = self._written + self._buffered
+        if event.start < expected:
+            return  # the buffer has it already
+        if event.start > expected:
+            log.error(
+                "%s: trial %s: samples from %d, expected %d; kept as they come",
+                self.path, event.key, event.start, expected,
+            )  # fmt: skip
+        if not self._buf:
+            self._buf = {k: [] for k in event.channels}
+        for k, v in event.channels.items():
+            self._buf.setdefault(k, []).append(np.array(v))
+        self._buffered += event.n
+
+    def _after_failure(self, event: object) -> None:
+        if self._salvage is None:
+            return
+        if isinstance(event, ev.SamplesAcquired):
+            self._keep_failed(event)
+        elif isinstance(event, ev.TrialEnded | ev.SessionEnded):
+            self._finish_failure()
+
+    def _finish_failure(self) -> None:
+        """Keep what can be kept (the loop has stopped): the buffer into the file if there is
+        room, the trial marked aborted, the file closed; what the file did not take into the
+        unsaved-samples file."""
+        space_left, self._salvage = self._salvage, None
+        key = self._key
         try:
-            if f is not None and key is not None and self._still_ours():
+            if self.f is not None and self._still_ours():
                 if space_left:
-                    self._write_out()  # what is buffered: the reserve is for it
+                    try:
+                        self._write_out()  # the reserve is for this
+                    except Exception as e:
+                        log.error("%s: buffered samples not written: %r", self.path, e)
                 g = self._reopen_plain()["trials"][key]
                 _set_attrs(
                     g,
                     {
                         "status": STATUS_ABORTED,
-                        "abort_reason": f"session writer failed: {what}",
+                        "abort_reason": f"session writer failed: {self.failure}",
                         "n_samples": self._written,
                         "ended_utc": _now(),
                     },
@@ -384,13 +482,84 @@ class SessionWriter:
         except Exception as e:  # the file takes no more; what was flushed stays
             log.error("%s: could not record the writer's failure: %r", self.path, e)
         finally:
+            self._close_quietly()
+        if self._buffered:
+            self._unsaved = {
+                "key": key,
+                "first": self._written,
+                "parts": {k: list(v) for k, v in self._buf.items()},
+                "n": self._buffered,
+            }
+            if self.unsaved_file is None:
+                self.unsaved_file = self._unsaved_target(key)
+                log.error(
+                    "%s: %d samples the file did not take go to %s",
+                    self.path, self._buffered, self.unsaved_file,
+                )  # fmt: skip
+            self._dump_unsaved()
+        self._buf, self._buffered, self._key = {}, 0, None
+
+    def _close_quietly(self) -> None:
+        try:
+            self._close_file()
+        except Exception as e:
+            log.error("%s: could not close after the writer's failure: %r", self.path, e)
+            self.f = None
+        if self._own_lock is not None:
+            self._own_lock.release()
+
+    def _unsaved_target(self, key: str) -> Path:
+        """Next to the session file if its folder has room for the samples (generously: the
+        trial's samples so far, again, a minute more, and the reserve), else a memory-backed
+        folder."""
+        first = unsaved_path(self.path, key)
+        n = self._written + self._buffered + 60_000
+        need = RESERVE_BYTES + 16 * n * max(1, len(self._buf))
+        for d in [first.parent, *_fallback_dirs()]:
             try:
-                self.close()
-            except Exception as e:
-                log.error("%s: could not close after the writer's failure: %r", self.path, e)
-                self.f = None
-        self._key = None
-        return WriterFailure(f"session writer failed: {what}")
+                if shutil.disk_usage(d).free > need:
+                    return first if d == first.parent else d / f"steerlab-{first.name}"
+            except OSError:
+                continue
+        return first
+
+    def _dump_unsaved(self) -> None:
+        """Write the unsaved samples (all of them, again: the file is replaced as it grows)."""
+        u = self._unsaved
+        if u is None or not u["n"] or u.get("dumped") == u["n"]:
+            return
+        arrays = {k: np.concatenate(v) for k, v in u["parts"].items() if v}
+        meta = {
+            "first_sample": np.int64(u["first"]),
+            "session_file": np.str_(str(self.path)),
+            "trial_key": np.str_(u["key"]),
+        }
+        first = unsaved_path(self.path, u["key"])
+        where = [self.unsaved_file or first]
+        where += [d / f"steerlab-{first.name}" for d in _fallback_dirs()]
+        for target in where:
+            tmp = target.with_name(target.name + ".part")
+            try:
+                with open(tmp, "wb") as fh:
+                    np.savez(fh, **arrays, **meta)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                os.replace(tmp, target)
+            except OSError as e:
+                log.error("%s: unsaved samples not written to %s: %r", self.path, target, e)
+                try:
+                    tmp.unlink(missing_ok=True)
+                except OSError:
+                    pass
+                continue
+            if self.unsaved_file is not None and target != self.unsaved_file:
+                log.error(
+                    "%s: unsaved samples moved from %s to %s", self.path, self.unsaved_file, target
+                )
+            self.unsaved_file, self.unsaved_samples = target, u["n"]
+            u["dumped"] = u["n"]
+            return
+        log.error("%s: %d unsaved samples could not be written anywhere", self.path, u["n"])
 
     def _still_ours(self) -> bool:
         try:
@@ -567,12 +736,10 @@ class SessionWriter:
         if whole_chunks:
             n1 = n1 // self._chunk * self._chunk
         if n1 > n0:
+            rests: dict[str, np.ndarray] = {}
             for k, parts in self._buf.items():
                 buffered = np.concatenate(parts)
-                block, rest = buffered[: n1 - n0], buffered[n1 - n0 :]
-                parts.clear()
-                if len(rest):
-                    parts.append(rest)
+                block, rests[k] = buffered[: n1 - n0], buffered[n1 - n0 :]
                 if k in self._counts:
                     counts = on_grid(block, self._counts[k])
                     if counts is None:
@@ -582,6 +749,12 @@ class SessionWriter:
                 d = g[k]
                 d.resize((n1,))
                 d[n0:n1] = block
+            # Trimmed only once every channel is written: after a failed write the buffer
+            # still holds the whole block (it goes to the unsaved-samples file).
+            for k, parts in self._buf.items():
+                parts.clear()
+                if len(rests[k]):
+                    parts.append(rests[k])
             self._written, self._buffered = n1, self._buffered - (n1 - n0)
         if self._marks and "marks" in g:
             d = g["marks"]

@@ -15,6 +15,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Generator, Iterator
+from dataclasses import replace
 from enum import StrEnum
 from typing import Protocol
 
@@ -327,8 +328,8 @@ class SessionEngine:
             stop_seen: float | None = None
             for block in gen:
                 m = len(next(iter(block.values())))
-                self._emit(ev.SamplesAcquired(key, n, block))
-                n += m
+                n += m  # acquired, whatever a subscriber makes of it (a failing writer keeps it)
+                self._emit(ev.SamplesAcquired(key, n - m, block))
                 if self._stop_req is not None:
                     # The loop has been told (control.abort_reason) and ends by itself; blocks
                     # it recorded meanwhile are still written. Only a loop that ignores the
@@ -359,6 +360,17 @@ class SessionEngine:
         finally:
             if isinstance(gen, Generator):  # as every loop's run_trial is
                 gen.close()  # runs the loop's finalizer: zero torque
+            # Blocks a loop recorded after the engine let go of it (a loop in another process
+            # stops at its next cycle): recorded samples, so they are handed on too.
+            for block in getattr(self.loop, "take_unhanded", lambda: [])():
+                m = len(next(iter(block.values())))
+                n += m
+                try:
+                    self._emit(ev.SamplesAcquired(key, n - m, block))
+                except TrialFault as f:
+                    if status != STATUS_ABORTED:
+                        status, reason = STATUS_ABORTED, str(f)
+                    self._aborting(reason)
             stats = {}
             try:
                 stats = dict(self.loop.trial_stats())
@@ -368,8 +380,22 @@ class SessionEngine:
             with self._lock:
                 self._control = None
                 self.current = None
-            self._emit(ev.TrialEnded(key, spec.trial_index, status, reason, n, stats))
+            end = ev.TrialEnded(key, spec.trial_index, status, reason, n, stats)
+            try:
+                self._emit(end)
+            except TrialFault as f:
+                # Recording the trial's end failed (the writer failed at the very end): the
+                # trial is aborted with that reason, not the engine broken. Subscribers see
+                # the trial's end again, with its real status (a failed writer ignores it).
+                status, reason = STATUS_ABORTED, str(f)
+                att[-1] = (attempt, status)
+                self._aborting(reason)
+                self._emit(replace(end, status=status, reason=reason))
         return status
+
+    def _aborting(self, reason: str) -> None:
+        if self._state is not State.ABORTING:
+            self._transition(State.ABORTING, reason)
 
     def _trial_attributes(self, setup: TrialSetup) -> dict:
         s, p = setup.spec, self.plan.protocol

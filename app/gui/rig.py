@@ -112,6 +112,12 @@ def _rig_loop_class(p: Path) -> Callable[..., Any]:
 
 
 def _lab_status(loop: Any, name: str) -> Callable[[], RigStatus]:
+    from steerlab.hardware.realtime import realtime_warnings
+
+    # What the loop process did not get (priority, locked memory, a core): shown with the
+    # faults, in red, for the whole session (issue 14).
+    warnings = [f"warning: {w}" for w in realtime_warnings(getattr(loop, "realtime", None) or {})]
+
     def status() -> RigStatus:
         raw = dict(getattr(loop, "status", {}) or {})
         glove = raw.get("glove_rate_hz")
@@ -123,7 +129,8 @@ def _lab_status(loop: Any, name: str) -> Callable[[], RigStatus]:
             glove_rate_hz=float(glove) if glove is not None else None,
             glove_note="no frames yet" if glove is None else "",
             faults=[str(f) for f in raw.get("faults", [])]
-            + ([] if raw.get("drive_ok", True) else ["drive not ready"]),
+            + ([] if raw.get("drive_ok", True) else ["drive not ready"])
+            + warnings,
         )
 
     return status

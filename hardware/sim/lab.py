@@ -11,9 +11,14 @@ command line on stdin (``{"op": "status"}``, ``{"op": "inject", "fault": NAME}``
 ``{"op": "close"}``); end of stdin closes it. :class:`LabProcess` is the parent's handle and
 :func:`host_rig_text` writes the host's rig file for it.
 
-The world behind the motor shaft is a wheel (Table 1's 0.3 kg·m²) held by a relaxed hand (a
-spring and a damper, whose torque is the column torque): enough to see torque and motion at the
-drive, not a subject's arm model (that stays with the in-process simulated rig).
+The world behind the motor shaft is, by default, a wheel (Table 1's 0.3 kg·m²) held by a relaxed
+hand (a spring and a damper, whose torque is the column torque): enough to see torque and motion
+at the drive (the fault tests). With ``--subject N`` it is the simulated rig's full world with
+subject N of its population (``steerlab run`` on a simulated rig: :class:`hardware.live.ProcessLoop`
+starts this process), and a sensor node if the rig names one. The host's loop then tells it
+about each trial and the sensor zeroing over a control socket (:class:`LabClient`: the trial's
+setup, "the subject lets go", "the subject holds again"), the way an experimenter would tell a
+person; nothing of the simulation runs in the loop's process.
 """
 
 from __future__ import annotations
@@ -22,12 +27,15 @@ import argparse
 import json
 import os
 import re
+import secrets
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import uuid
 from dataclasses import replace
+from multiprocessing.connection import Client, Listener
 from pathlib import Path
 
 from steerlab.hardware.can.config import UDP_LOOPBACK
@@ -70,19 +78,98 @@ class HeldWheel:
         return 20.0, 20.0
 
 
-class SimulatedLab:
-    """The drive node and glove unit of a simulated rig file, on ``channel`` (udp_loopback)."""
+#: Environment variable that carries the control socket's key from parent to lab process.
+AUTHKEY_ENV = "STEERLAB_LAB_AUTHKEY"
 
-    def __init__(self, rig_path: str | None, channel: str) -> None:
+
+class SimulatedLab:
+    """The drive node and glove unit of a simulated rig file, on ``channel`` (udp_loopback);
+    with ``subject``, the rig's full simulated world with that subject of its population."""
+
+    def __init__(self, rig_path: str | None, channel: str, subject: int | None = None) -> None:
+        from steerlab.hardware.can import SharedPlant, SimulatedTorqueSensor
         from steerlab.hardware.glove.simulated import SimulatedGloveUnit
         from steerlab.hardware.rig import load_rig
 
         rig = load_rig(rig_path)
         self.config = replace(rig.drive, interface=UDP_LOOPBACK, channel=channel)
-        self.plant = HeldWheel(rig.loop_rate_hz)
+        self.physiology: dict | None = None
+        self.world = None  # the subject's world (hardware.live.WorldPlant), or None
+        self.sensor_node = None
+        self._buses = []
+        if subject is None:
+            self.plant = HeldWheel(rig.loop_rate_hz)
+        else:
+            from steerlab.hardware.live import WorldPlant
+            from steerlab.hardware.sim.physiology import make_population
+            from steerlab.hardware.sim.rig import simulated_rig
+
+            sim = rig.simulation
+            if sim is None:
+                raise ValueError(f"{rig.source}: --subject needs a simulated rig ([simulation])")
+            phys = make_population(subject, seed=sim.seed)[subject - 1]
+            self.physiology = phys.to_dict()
+            sim_rig = simulated_rig(phys, sim.world_config(rig.loop_rate_hz))
+            self.world = self.plant = WorldPlant(
+                sim_rig, sim.column_torque_offset_nm, seed=phys.seed
+            )
+        with_sensor = subject is not None and self.config.torque_sensor.source == "node"
+        # A sensor node reads the world on its own thread; the drive node alone steps it.
+        drive_plant = SharedPlant(self.plant) if with_sensor else self.plant
         self.bus = open_bus(self.config, filtered=False)
-        self.node = SimulatedDrive(self.bus, self.config, self.plant)
+        self.node = SimulatedDrive(self.bus, self.config, drive_plant)
+        if with_sensor:
+            sensor_bus = open_bus(self.config, filtered=False)
+            self._buses.append(sensor_bus)
+            self.sensor_node = SimulatedTorqueSensor(sensor_bus, self.config, drive_plant)
         self.glove = SimulatedGloveUnit(self.plant.grip, rig.glove.calibration).start()
+        self._listener: Listener | None = None
+
+    # -- the host's loop tells the simulated subject about the trial (control socket) --------
+    def serve(self, authkey: bytes) -> str:
+        """Listen for :class:`LabClient` connections on a private Unix socket; its address."""
+        where = tempfile.mkdtemp(prefix="steerlab-lab-")  # mode 0700: ours alone
+        self._listener = Listener(os.path.join(where, "control"), "AF_UNIX", authkey=authkey)
+        threading.Thread(target=self._accept, name="lab-control", daemon=True).start()
+        return self._listener.address
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                conn = self._listener.accept()
+            except Exception:  # closed, or a client with the wrong key
+                if self._listener is None:
+                    return
+                continue
+            threading.Thread(target=self._answer, args=(conn,), daemon=True).start()
+
+    def _answer(self, conn) -> None:
+        with conn:
+            while True:
+                try:
+                    op, *args = conn.recv()
+                except (EOFError, OSError):
+                    return
+                try:
+                    conn.send(("ok", self.control(op, *args)))
+                except Exception as e:  # a bad request must not take the devices down
+                    conn.send(("error", f"{type(e).__name__}: {e}"))
+
+    def control(self, op: str, *args: object) -> object:
+        w = self.world
+        if op == "physiology":
+            return self.physiology
+        if w is None:
+            raise ValueError(f"{op!r}: this lab has no simulated subject (start it with --subject)")
+        if op == "begin_trial":
+            w.begin_trial(args[0])
+        elif op == "release":  # the subject lets go (sensor zeroing)
+            w.released = True
+        elif op == "hold":
+            w.released = False
+        else:
+            raise ValueError(f"unknown control op {op!r}")
+        return None
 
     def status(self) -> dict:
         n = self.node
@@ -97,6 +184,7 @@ class SimulatedLab:
             "sync_count": n.sync_count,
             "enabled_syncs": n.enabled_syncs,
             "errors": [repr(e) for e in n.errors],
+            "cpu_s": sum(os.times()[:2]),  # this process's, user + system
         }
 
     def inject(self, fault: str) -> None:
@@ -119,22 +207,58 @@ class SimulatedLab:
             raise ValueError(f"unknown fault {fault!r} (known: {', '.join(FAULTS)})")
 
     def close(self) -> None:
-        for closer in (self.glove.close, self.node.close, self.bus.shutdown):
+        listener, self._listener = self._listener, None
+        closers = [self.glove.close, self.node.close, self.bus.shutdown]
+        if self.sensor_node is not None:
+            closers.append(self.sensor_node.close)
+        closers += [b.shutdown for b in self._buses]
+        if listener is not None:
+            closers.append(listener.close)
+        for closer in closers:
             try:
                 closer()
             except Exception:
                 pass
 
 
+class LabClient:
+    """The host loop's side of the lab's control socket (:meth:`SimulatedLab.serve`)."""
+
+    def __init__(self, address: str, authkey: bytes) -> None:
+        self._conn = Client(address, "AF_UNIX", authkey=authkey)
+        self._lock = threading.Lock()
+
+    def call(self, op: str, *args: object) -> object:
+        with self._lock:
+            self._conn.send((op, *args))
+            kind, value = self._conn.recv()
+        if kind != "ok":
+            raise RuntimeError(f"simulated lab: {op}: {value}")
+        return value
+
+    def close(self) -> None:
+        try:
+            self._conn.close()
+        except OSError:
+            pass
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m hardware.sim.lab", description=__doc__)
     ap.add_argument("--rig", default=None, help="a simulated rig file (default: the shipped one)")
     ap.add_argument("--channel", required=True, help="udp_loopback channel name")
+    ap.add_argument(
+        "--subject", type=int, help="simulate subject N of the rig's population (full world)"
+    )
     args = ap.parse_args(argv)
     from steerlab.hardware.realtime import tune_process
 
-    tune_process()  # the drive node answers each SYNC: give it what the host may have
-    lab = SimulatedLab(args.rig, args.channel)
+    lab = SimulatedLab(args.rig, args.channel, args.subject)
+    # Once built (seconds of CPU for a subject's world): the drive node answers each SYNC, so
+    # its threads get what the host may have.
+    tune_process()
+    key = os.environ.pop(AUTHKEY_ENV, "")
+    control = lab.serve(bytes.fromhex(key)) if key else None
     out = sys.stdout
 
     def say(obj: dict) -> None:
@@ -142,7 +266,15 @@ def main(argv: list[str] | None = None) -> int:
         out.flush()
 
     try:
-        say({"ready": True, "pty": lab.glove.port, "channel": args.channel, "pid": os.getpid()})
+        say(
+            {
+                "ready": True,
+                "pty": lab.glove.port,
+                "channel": args.channel,
+                "pid": os.getpid(),
+                "control": control,
+            }
+        )
         for line in sys.stdin:
             try:
                 cmd = json.loads(line)
@@ -168,8 +300,15 @@ def main(argv: list[str] | None = None) -> int:
 class LabProcess:
     """Parent's handle on ``python -m steerlab.hardware.sim.lab`` (see the module docstring)."""
 
-    def __init__(self, rig_path: str | None = None, *, start_timeout_s: float = 60.0) -> None:
+    def __init__(
+        self,
+        rig_path: str | None = None,
+        *,
+        subject: int | None = None,
+        start_timeout_s: float = 60.0,
+    ) -> None:
         self.channel = f"steerlab-lab-{uuid.uuid4().hex[:12]}"
+        self.authkey = secrets.token_bytes(16)
         import steerlab
 
         # The folder that holds the steerlab package (the checkout, or site-packages), so the
@@ -177,7 +316,9 @@ class LabProcess:
         root = Path(steerlab.__file__).resolve().parents[1]
         cmd = [sys.executable, "-m", "steerlab.hardware.sim.lab", "--channel", self.channel]
         if rig_path is not None:
-            cmd += ["--rig", str(rig_path)]
+            cmd += ["--rig", str(Path(rig_path).resolve())]
+        if subject is not None:
+            cmd += ["--subject", str(int(subject))]
         from steerlab.hardware.realtime import SINGLE_THREADED_MATH
 
         self.proc = subprocess.Popen(
@@ -187,7 +328,7 @@ class LabProcess:
             stdout=subprocess.PIPE,
             text=True,
             bufsize=1,
-            env={**os.environ, **SINGLE_THREADED_MATH},
+            env={**os.environ, **SINGLE_THREADED_MATH, AUTHKEY_ENV: self.authkey.hex()},
         )
         self._lock = threading.Lock()
         ready = self._read(start_timeout_s)
@@ -196,6 +337,7 @@ class LabProcess:
             raise RuntimeError(f"the simulated lab did not come up: {ready}")
         self.pty = ready["pty"]
         self.pid = ready["pid"]
+        self.control_address: str | None = ready.get("control")
 
     def _read(self, timeout_s: float) -> dict:
         result: list[str] = []

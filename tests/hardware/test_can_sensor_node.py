@@ -763,8 +763,18 @@ def test_simulated_rig_with_a_sensor_node_runs_a_trial(tmp_path):
     text = edit(text, "subindex = 0", "# subindex = 0")
     rig = load_rig(write_rig(tmp_path, text))
     assert (rig.drive.torque_sensor.source, rig.drive.torque_sensor.node_id) == ("node", 2)
-    # Behaviour, not timing: a late cycle on a shared machine must not abort this trial.
-    rig = replace(rig, safety=replace(rig.safety, loop_stall_s=0.5))
+    # Behaviour, not timing: a late cycle on a shared machine must not abort this trial, nor
+    # a heartbeat gap of this (not real-time) process, which hosts the drive node too.
+    rig = replace(
+        rig,
+        safety=replace(rig.safety, loop_stall_s=0.5, glove_timeout_s=2.0),
+        drive=replace(
+            rig.drive,
+            host_heartbeat_timeout_ms=100,
+            heartbeat_timeout_ms=2000,
+            max_missed_tpdo=500,
+        ),
+    )
     plan = build_plan(parse_protocol(SHORT_TRIAL, "short.toml"), 2)
     setup = plan.setup(plan.trials[0])
 
@@ -779,7 +789,9 @@ def test_simulated_rig_with_a_sensor_node_runs_a_trial(tmp_path):
         assert np.all(np.isfinite(driver_torque))
         # every cycle's column torque came in the sensor node's frame 0x182
         assert devices.sensor_node.sent_frames >= setup.n_samples
-        assert drive.missed_sensor_frames < 0.01 * drive.cycle_count
+        # Most cycles latched a fresh sensor frame (how many: timing, benchmarks/live_loop.py;
+        # under load a late frame is counted and the last value held).
+        assert drive.missed_sensor_frames < 0.5 * drive.cycle_count
         # the simulated sensor's offset (0.05 N·m) was zeroed through the sensor node
         assert devices.torque_sensor.offset_nm == pytest.approx(0.05, abs=0.01)
         assert 0.01 < np.std(angle[500:]) < 0.3

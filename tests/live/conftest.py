@@ -49,16 +49,26 @@ def short_protocol_file(tmp_path):
     return p
 
 
+HOST_TIMEOUT_MS = 100
+
+
 @pytest.fixture
 def rig_config():
     # The test process is not real-time tuned and shares the CPU with other tests: allow late
     # cycles here, so that each fault test sees its own fault (the stall test sets its own).
-    # The drive's own watch on the host gets the longest timeout a rig file may ask for.
+    # The drive's watch on the host gets the longest timeout a rig file may ask for (100 ms),
+    # the drive's heartbeat and missed TPDOs lenient timeouts: host and simulated drive share
+    # this (not real-time) process, starved together under load.
     rig = load_rig()
     return replace(
         rig,
         safety=replace(rig.safety, loop_stall_s=0.5, glove_timeout_s=1.0),
-        drive=replace(rig.drive, host_heartbeat_timeout_ms=100),
+        drive=replace(
+            rig.drive,
+            host_heartbeat_timeout_ms=HOST_TIMEOUT_MS,
+            heartbeat_timeout_ms=1000,
+            max_missed_tpdo=500,
+        ),
     )
 
 

@@ -123,3 +123,13 @@ def test_realtime_warnings_say_what_the_loop_did_not_get():
     w = realtime_warnings(bad)
     assert len(w) == 3 and "real-time priority" in w[0] and "not locked" in w[1]
     assert "CPU [1]" in w[2]
+
+
+def test_realtime_summary_says_what_the_loop_got():
+    from steerlab.hardware.realtime import realtime_summary
+
+    good = {"sched_fifo_priority": 20, "mlockall": True, "cpus": [0, 1]}
+    assert realtime_summary(good) == "control loop: SCHED_FIFO 20, memory locked, CPUs [0, 1]"
+    bad = {"sched_fifo_priority": "not permitted (EPERM)", "mlockall": "not permitted (ENOMEM)"}
+    s = realtime_summary(bad)
+    assert "no SCHED_FIFO (not permitted (EPERM))" in s and "memory not locked" in s

@@ -65,6 +65,8 @@ def test_a_session_through_can_and_serial_frames(devices, short_protocol, tmp_pa
 
 FAULTS = {
     "drive heartbeat lost": (lambda d, loop: d.node.stop_heartbeat(), r"drive lost: no heartbeat"),
+    # 0x2310 first, or after a heartbeat error of a host starved by the load (the reason names
+    # every active fault).
     "drive EMCY fault": (lambda d, loop: d.node.inject_fault(0x2310), r"drive fault: .*0x2310"),
     "CAN send failure": (lambda d, loop: d._buses[-1].shutdown(), r"drive fault: .*(not sent|bus)"),
     "drive link silent": (lambda d, loop: d.node.go_silent(), r"drive (lost|fault)"),
@@ -107,7 +109,8 @@ def test_each_fault_aborts_the_trial_keeps_samples_and_stops_the_motor(
     assert devices.node.statusword & 0x6F != 0x27  # not OPERATION ENABLED
     if fault in ("CAN send failure", "drive link silent"):
         assert devices.node.host_heartbeats_lost == 1
-        assert devices.node.zero_torque_since - t_inject[0] < 0.1 + 0.5
+        timeout_s = devices.drive_config.host_heartbeat_timeout_ms / 1e3
+        assert devices.node.zero_torque_since - t_inject[0] < timeout_s + 0.5
     else:
         assert devices.node.target_torque_permille == 0
 

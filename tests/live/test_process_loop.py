@@ -30,8 +30,12 @@ def lenient_rig(tmp_path):
     text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
     p = tmp_path / "rig.toml"
     text = text.replace("host_heartbeat_timeout_ms = 80 ", "host_heartbeat_timeout_ms = 100 ")
+    text = text.replace("heartbeat_timeout_ms = 250 ", "heartbeat_timeout_ms = 2000 ")
+    text = text.replace("max_missed_tpdo = 20 ", "max_missed_tpdo = 500 ")
+    text = text.replace("glove_timeout_s = 0.25 ", "glove_timeout_s = 2.0 ")
     p.write_text(text.replace("loop_stall_s = 0.02 ", "loop_stall_s = 0.5 "))
-    assert "loop_stall_s = 0.5" in p.read_text()
+    for edited in ("loop_stall_s = 0.5", "glove_timeout_s = 2.0", "max_missed_tpdo = 500"):
+        assert edited in p.read_text()
     return p
 
 
@@ -61,14 +65,30 @@ def _when(eng, start_samples, action):
 
 
 def test_session_in_the_loop_process_is_real_time(process_loop, short_protocol, tmp_path):
-    assert process_loop.realtime["switch_interval_s"] == 2e-4
+    # Behaviour, not timing (timing: benchmarks/live_loop.py): the loop process has the
+    # real-time measures its tuning reports, and runs a whole session cycle by cycle.
+    rt = process_loop.realtime
+    assert rt["switch_interval_s"] == 2e-4
+    pid = process_loop._proc.pid
+    fifo = rt["sched_fifo_priority"]
+    if isinstance(fifo, int):  # granted (root or CAP_SYS_NICE): the process really is FIFO
+        assert os.sched_getscheduler(pid) == os.SCHED_FIFO
+        assert os.sched_getparam(pid).sched_priority == fifo
+    else:
+        assert fifo.startswith("not permitted")
+    if rt["mlockall"] is True:  # its memory is locked
+        status = open(f"/proc/{pid}/status").read()
+        locked_kb = int(status.split("VmLck:")[1].split()[0])
+        assert locked_kb > 0
+    assert rt["cpus"] == sorted(os.sched_getaffinity(pid))
     eng = _engine(process_loop, short_protocol, tmp_path / "S02.h5")
     assert eng.run() is State.DONE
     recs = SessionFile(tmp_path / "S02.h5").records()
     assert [r.status for r in recs] == ["complete", "complete"]
     stats = json.loads(recs[0].attrs["loop_stats"])
-    assert stats["cycles"] == 6500
-    assert stats["period_error_p50_ms"] < 0.5  # timing quality itself: benchmarks/live_loop.py
+    assert stats["cycles"] == stats["samples"] == 6500
+    # The samples are the cycles, one per period, in order.
+    np.testing.assert_array_equal(recs[0].time_s, np.arange(6500) / 1000.0)
 
 
 def test_block_size_reaches_the_loop_process(lenient_rig, short_protocol, tmp_path):
@@ -180,8 +200,11 @@ def test_steerlab_run_and_stop(tmp_path, short_protocol_file, lenient_rig):
     assert s.wait(30) == 0, s.stderr.read()
     _, err = p.communicate(timeout=60)
     assert p.returncode == 3
-    (r,) = SessionFile(out / "S01.h5").records()
-    assert r.status == "aborted" and "SIGUSR1" in r.abort_reason and r.n_samples > 1000
+    # The trial under way (the first, or the second where the stop command was slow to start
+    # on a loaded machine) was aborted.
+    r = SessionFile(out / "S01.h5").records()[-1]
+    assert r.status == "aborted" and "SIGUSR1" in r.abort_reason and r.n_samples > 0
+    stopped = r.trial_index
     assert not pidfile.exists()
     # Resume finishes the session: the aborted trial again, then the rest.
     p = _steerlab(
@@ -199,7 +222,8 @@ def test_steerlab_run_and_stop(tmp_path, short_protocol_file, lenient_rig):
     stdout, err = p.communicate(timeout=120)
     assert p.returncode == 0, err + stdout
     att = SessionFile(out / "S01.h5").attempts()
-    assert sorted(att[1]) == [(1, "aborted"), (2, "complete")] and att[2] == [(1, "complete")]
+    assert sorted(att[stopped]) == [(1, "aborted"), (2, "complete")]
+    assert all(a == [(1, "complete")] for k, a in att.items() if k != stopped) and len(att) == 2
     # Without --resume an existing session is refused.
     p = _steerlab(
         "run", "--subject", 1, "--out", out, "--protocol", short_protocol_file, "--rig", lenient_rig
@@ -250,3 +274,28 @@ def test_emergency_stop_from_the_keyboard(tmp_path, short_protocol_file, lenient
     (r,) = SessionFile(out / "S01.h5").records()
     expected = "keyboard" if how == "enter" else "SIGINT"
     assert r.status == "aborted" and expected in r.abort_reason
+
+
+def test_steerlab_run_warns_when_the_loop_is_not_real_time(
+    tmp_path, short_protocol_file, lenient_rig
+):
+    """Without real-time priority and locked memory (here refused on purpose, as for a user
+    without the rights) ``steerlab run`` says so at start-up, and the session file records
+    what the loop got."""
+    out = tmp_path / "s"
+    args = ["--out", out, "--protocol", short_protocol_file, "--rig", lenient_rig]
+    p = _steerlab("run", "--subject", 1, *args, env={**os.environ, "STEERLAB_REALTIME": "off"})
+    try:
+        assert wait_for_samples(out / "S01.h5", 500, time.monotonic() + 60)
+        p.send_signal(signal.SIGINT)
+        stdout, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    lines = [ln for ln in (stdout + err).splitlines() if "warning:" in ln]
+    assert any("without real-time priority" in ln and "STEERLAB_REALTIME=off" in ln for ln in lines)
+    assert any("memory is not locked" in ln for ln in lines), stdout + err
+    assert "control loop: no SCHED_FIFO (not requested" in stdout + err
+    with h5py.File(out / "S01.h5", "r") as f:
+        tuning = json.loads(f.attrs["realtime_tuning"])
+    assert tuning["mlockall"] == "not requested (STEERLAB_REALTIME=off)"
