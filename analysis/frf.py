@@ -115,7 +115,7 @@ def smooth_log_spectrum(
         if not (np.isfinite(f[j]) and f[j] > 0):
             continue
         w = no * np.exp(-0.5 * ((xo - x[j]) / decades) ** 2)
-        n_eff = np.count_nonzero(w > 1e-3 * w.max())
+        n_eff = int(np.count_nonzero(w > 1e-3 * w.max()))
         deg = min(degree, n_eff - 2)
         if deg < 1:
             out[j] = float(np.sum(w * y) / np.sum(w))

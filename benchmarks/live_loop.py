@@ -135,6 +135,7 @@ def main(argv: list[str]) -> dict:
             and lost == 0
             and p99 is not None
             and p99 < 0.25
+            and late_fraction is not None
             and late_fraction < 0.001
         ),
         "load_average_before": [round(x, 2) for x in load_before],

@@ -491,7 +491,7 @@ class SessionWriter:
                 "n": self._buffered,
             }
             if self.unsaved_file is None:
-                self.unsaved_file = self._unsaved_target(key)
+                self.unsaved_file = self._unsaved_target(key or "trial")
                 log.error(
                     "%s: %d samples the file did not take go to %s",
                     self.path, self._buffered, self.unsaved_file,
@@ -541,7 +541,7 @@ class SessionWriter:
             tmp = target.with_name(target.name + ".part")
             try:
                 with open(tmp, "wb") as fh:
-                    np.savez(fh, **arrays, **meta)
+                    np.savez(fh, **arrays, **meta)  # type: ignore[arg-type]
                     fh.flush()
                     os.fsync(fh.fileno())
                 os.replace(tmp, target)

@@ -370,7 +370,7 @@ class SessionEngine:
                 except TrialFault as f:
                     if status != STATUS_ABORTED:
                         status, reason = STATUS_ABORTED, str(f)
-                    self._aborting(reason)
+                    self._aborting(reason or str(f))
             stats = {}
             try:
                 stats = dict(self.loop.trial_stats())
