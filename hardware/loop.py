@@ -33,6 +33,8 @@ import numpy as np
 
 from steerlab.hardware.interfaces import Display, GloveUnit, TorqueSensor, WheelDrive
 from steerlab.hardware.safety import SafetyLimits, loop_command, nonfinite_input, warm_up
+from steerlab.hardware.vehicle import DRIVING_CHANNELS, VehicleRenderer
+from steerlab.hardware.vehicle import warm_up as vehicle_warm_up
 from steerlab.protocols.engine import LoopControl, TrialFault
 from steerlab.protocols.session import TrialSetup
 
@@ -137,6 +139,12 @@ class DeviceLoop:
         tp_all = setup.perturbation_nm
         k_sw, b_sw = setup.wheel_k, setup.wheel_b
         limits = self.safety.kernel_vector(fs)
+        # A driving trial: the vehicle's aligning torque joins the perturbation in the command.
+        vehicle = None
+        if setup.driving is not None:
+            vehicle_warm_up()  # compiled now, not in the first cycle
+            vehicle = VehicleRenderer(setup.driving, fs)
+        ta = 0.0
         stall_s = self.safety.loop_stall_s
         cmd = 0.0
         errors: list[float] = []
@@ -162,6 +170,8 @@ class DeviceLoop:
             while k < n_total:
                 m = min(blk, n_total - k)
                 buf = {c: np.empty(m) for c in LOOP_CHANNELS}
+                if vehicle is not None:
+                    buf.update({c: np.empty(m) for c in DRIVING_CHANNELS})
                 filled = 0  # samples of this block complete
                 try:
                     for j in range(m):
@@ -204,10 +214,15 @@ class DeviceLoop:
                             fade = max(0.0, fade - fade_step)
                             tp *= fade
                         ang, vel = r.angle_rad, r.velocity_rad_s
-                        cmd = loop_command(tp, ang, vel, cmd, k_sw, b_sw, limits)
+                        if vehicle is not None:
+                            ta = vehicle.cycle(ang)
+                            for i, c in enumerate(DRIVING_CHANNELS):
+                                buf[c][j] = vehicle.row[i]
+                        cmd = loop_command(tp + ta, ang, vel, cmd, k_sw, b_sw, limits)
                         if cmd == 0.0:  # loop_command's answer to a non-finite input, or a zero
                             bad = nonfinite_input(
                                 perturbation_torque_Nm=tp,
+                                aligning_torque_Nm=ta,
                                 wheel_angle_rad=r.angle_rad,
                                 wheel_velocity_rad_s=r.velocity_rad_s,
                                 wheel_k=k_sw,
@@ -234,6 +249,8 @@ class DeviceLoop:
                             self.sample_sink(k + j, buf, j)
                         if self.display is not None and (k + j) % 20 == 0:
                             self.display.show_angle(r.angle_rad)
+                            if vehicle is not None and hasattr(self.display, "show_vehicle"):
+                                self.display.show_vehicle(vehicle.channels())
                         if k + j == next_change:
                             _, cond, bd = changes.pop(0)
                             self.display.show_condition(cond, bd)
