@@ -39,6 +39,7 @@ from PySide6.QtWidgets import (
 )
 
 import steerlab.app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
+from steerlab.app.gui import road_view
 from steerlab.app.gui.bridge import BridgeFault, EngineBridge
 from steerlab.app.gui.controller import (
     ABORTED,
@@ -120,6 +121,7 @@ class ExperimenterWindow(QMainWindow):
         )  # fmt: skip
         self.dashboard = dashboard or SubjectDashboard(span_deg=dashboard_span(protocol))
         self.dashboard.angle_source = self._display_angle
+        self.road = road_view.install(self.dashboard, protocol, self._display_vehicle)
         self.last_quality: QualityCheck | None = None
         self.events_seen: list[object] = []  # for tests and the log; events are small
         self._closing = False
@@ -423,6 +425,7 @@ class ExperimenterWindow(QMainWindow):
             b = float(event.attributes.get("boundary_deg", math.inf))
             self.plots.set_boundary(b)
             self.dashboard.show_condition(event.condition, b)
+            self.road.trial_started(event.attributes)  # a driving trial shows the road
             self.dashboard.set_active(True, HANDS_OFF_MESSAGE if c.is_rig_check else "")
             self._show_next()
         elif isinstance(event, ev.TrialEnded):
@@ -589,6 +592,10 @@ class ExperimenterWindow(QMainWindow):
             self.plots.set_boundary(spec.boundary_deg)
 
     # -- status -----------------------------------------------------------------------------------
+    def _display_vehicle(self) -> dict[str, float] | None:
+        rig = self.controller.rig
+        return None if rig is None else getattr(rig.display, "vehicle", None)
+
     def _display_angle(self) -> float | None:
         rig = self.controller.rig
         if rig is not None and rig.display.updates:
