@@ -90,8 +90,13 @@ def _accuracy(out: Path) -> dict:
     if rep is None:
         return {"error": "no drives"}
     stats = {
-        f"{factor}/{dv}": {"means": dict(zip(r["conditions"], np.round(r["condition_means"], 5).tolist(), strict=True)),
-                           "F": round(r["F"], 2), "p": r["p"]}  # fmt: skip
+        f"{factor}/{dv}": {
+            "means": dict(
+                zip(r["conditions"], np.round(r["condition_means"], 5).tolist(), strict=True)
+            ),
+            "F": round(r["F"], 2),
+            "p": r["p"],
+        }  # fmt: skip
         for factor, by in rep.stats.items()
         for dv, r in by.items()
     }
@@ -159,7 +164,8 @@ def _view_fps(frames: int = 300) -> dict:
     app.processEvents()
     t0 = time.perf_counter()
     for i in range(frames):
-        v.set_state({"road_distance_m": 100.0 + 0.33 * i, "lateral_position_m": 0.3 * np.sin(i / 20),
+        y = 0.3 * np.sin(i / 20)
+        v.set_state({"road_distance_m": 100.0 + 0.33 * i, "lateral_position_m": y,
                      "heading_error_rad": 0.01})  # fmt: skip
         v.repaint()
     dt = time.perf_counter() - t0

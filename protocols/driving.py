@@ -103,8 +103,8 @@ class RoadSpec:
     straight_max_m: float = 200.0
     curve_min_m: float = 80.0
     curve_max_m: float = 250.0
-    min_radius_m: float = 150.0
-    max_radius_m: float = 600.0
+    min_radius_m: float = 300.0  # 25 m/s: 2.1 m/s², 43 % of the grip on μ = 0.5
+    max_radius_m: float = 800.0
     curvature_taper_m: float = 40.0  # curvature changes smoothly (clothoid-like) over this
     lead_in_m: float = 100.0  # a straight, wide start
     grid_m: float = 0.25

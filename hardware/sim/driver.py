@@ -19,12 +19,14 @@ scale with the subject's ``adaptation_tau_s`` (arm, remnant) and ``grip_adaptati
 (grip). The target is the subject's own boundary-task behaviour at an *equivalent boundary*
 (ours):
 
-    b_eq = 20 °/m · margin · sqrt(15 m/s / U) / (1 + 3 a_y / (μ g))
+    b_eq = 12 °/m · margin · sqrt(15 m/s / U) / (1 + 3 a_y / (μ g))
 
 margin = (narrowest lane width in the next second − car width) / 2, a_y = U² · the largest
-|curvature| in the next second. A 3.6-m lane at 15 m/s on a straight is BT18; a 2.6-m lane is
-about BT8; faster, curvier and slipperier roads lower b_eq (stiffer, more grip). The target's
-log-behaviour is interpolated linearly in b_eq between PT (0°), BT5, BT8, BT12 and BT18
+|curvature| in the next second. A 3.6-m lane at 15 m/s on a straight is between BT12 and BT8
+(10.8°), a 2.6-m lane about BT5; faster, curvier and slipperier roads lower b_eq (stiffer, more
+grip). (With 20 °/m, a 3.6-m lane as BT18, the most compliant simulated subjects let the
+perturbation weave the car out of the lane in one drive in ten: real drivers stiffen first.)
+The target's log-behaviour is interpolated linearly in b_eq between PT (0°), BT5, BT8, BT12 and BT18
 (held beyond 18°). The road position is taken as U·t (the car keeps its speed; its arc length
 differs from U·t by the cosine of its heading error, well below a metre per minute), so the
 behaviour is computed in the world's noise blocks like a schedule, and the batch and
@@ -47,7 +49,7 @@ from steerlab.protocols.driving import G_MPS2, DrivingSetup
 
 #: The boundary tasks whose behaviours the driver interpolates, by boundary width (deg).
 ANCHORS = (("PT", 0.0), ("BT5", 5.0), ("BT8", 8.0), ("BT12", 12.0), ("BT18", 18.0))
-BOUNDARY_PER_MARGIN_DEG_PER_M = 20.0
+BOUNDARY_PER_MARGIN_DEG_PER_M = 12.0
 REFERENCE_SPEED_MPS = 15.0
 LATERAL_DEMAND_GAIN = 3.0
 ANTICIPATION_S = 1.0

@@ -99,9 +99,7 @@ perturbation_level = 1.0
 """
 
 
-def test_a_driving_trial_runs_through_the_live_loop_with_the_road_on_the_dashboard(
-    qtbot, tmp_path
-):
+def test_a_driving_trial_runs_through_the_live_loop_with_the_road_on_the_dashboard(qtbot, tmp_path):
     text = short_protocol_text()
     head = text.split("[[conditions]]", 1)[0]
     protocol = parse_protocol(head + DRIVE_ONLY, "drive.toml")
