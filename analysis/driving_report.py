@@ -404,8 +404,7 @@ def html_section(rep: DrivingReport, image_uri: str | None) -> str:
     for factor, by_dv in rep.stats.items():
         for dv, r in by_dv.items():
             means = ", ".join(
-                f"{html.escape(str(c))}: {m:.4g}"
-                for c, m in zip(r["conditions"], r["condition_means"], strict=True)
+                f"{html.escape(str(c))}: {m:.4g}" for c, m in r["condition_means"].items()
             )
             stat_rows.append(
                 f'<tr><td class="l">{factor}</td><td class="l">{dv}</td><td class="l">{means}</td>'

@@ -99,12 +99,10 @@ def _accuracy(out: Path) -> dict:
         return {"error": "no drives"}
     stats = {
         f"{factor}/{dv}": {
-            "means": dict(
-                zip(r["conditions"], np.round(r["condition_means"], 5).tolist(), strict=True)
-            ),
+            "means": {c: round(m, 5) for c, m in r["condition_means"].items()},
             "F": round(r["F"], 2),
             "p": r["p"],
-        }  # fmt: skip
+        }
         for factor, by in rep.stats.items()
         for dv, r in by.items()
     }

@@ -73,10 +73,10 @@ class SimulatedSubject:
         of = {c: self._behaviour_in(c, setup, cfg) for c in set(sch.conditions)}
         return schedule_for(sch, of, self.adaptation_tau_s, self.grip_adaptation_tau_s)
 
-    def driving_behaviour(self, setup: TrialSetup, cfg: WorldConfig) -> DrivingBehaviour | None:
+    def driving_behaviour(self, setup: TrialSetup, cfg: WorldConfig) -> DrivingBehaviour:
         """For a driving trial: arm and grip following the road (hardware/sim/driver.py)."""
         if setup.driving is None:
-            return None
+            raise ValueError(f"trial {setup.key} is not a driving trial")
         anchors = {c: self._behaviour_in(c, setup, cfg) for c, _ in ANCHORS}
         return DrivingBehaviour(
             setup.driving, anchors, self.adaptation_tau_s, self.grip_adaptation_tau_s
@@ -107,11 +107,12 @@ class SimulatedRig:
         if abs(setup.fs_hz - self.cfg.fs_hz) > 1e-9:
             self.cfg = replace(self.cfg, fs_hz=setup.fs_hz)
             self.world.cfg = self.cfg
+        schedule: BehaviourSchedule | DrivingBehaviour | None
         if setup.hands_off:
             b, schedule = HANDS_OFF, None
         elif setup.driving is not None:
-            schedule = self.subject.driving_behaviour(setup, self.cfg)
-            b = schedule.base()
+            drive = self.subject.driving_behaviour(setup, self.cfg)
+            b, schedule = drive.base(), drive
         else:
             b = self.subject.behaviour(setup, self.cfg)
             schedule = self.subject.behaviour_schedule(setup, self.cfg)
