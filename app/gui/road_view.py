@@ -175,11 +175,15 @@ class RoadView(QWidget):
             p.setPen(QPen(_EDGE, 9 if hit else 4))
             p.drawPolyline(poly(pts))
         veh: VehicleSpec = self.drive.vehicle
-        cw, cl = veh.width_m * sx, (veh.cg_to_front_m + veh.cg_to_rear_m + 1.6) * sy
+        # Width to the lane's scale (it is what the feedback judges); the length drawn 2× so
+        # that the car reads as a car with the magnified width (its length plays no part).
+        cw, cl = veh.width_m * sx, 2.0 * (veh.cg_to_front_m + veh.cg_to_rear_m + 1.6) * sy
         colour = _CAR_OUT if self.outside else _CAR
         p.setPen(QPen(colour, 2))
         p.setBrush(QBrush(colour if self.outside else QColor("#d0d0d0")))
-        p.drawRoundedRect(QRectF(ox - cw / 2, oy - cl * 0.65, cw, cl), 4, 4)
+        p.drawRoundedRect(QRectF(ox - cw / 2, oy - cl * 0.6, cw, cl), 6, 6)
+        p.setBrush(QBrush(QColor("#404040")))  # the windscreen: which way is ahead
+        p.drawRoundedRect(QRectF(ox - cw * 0.38, oy - cl * 0.38, cw * 0.76, cl * 0.18), 3, 3)
         p.end()
 
 
