@@ -116,7 +116,7 @@ def _accuracy(out: Path) -> dict:
     }
 
 
-def _loop_timing(seconds_hint: str) -> dict:
+def _loop_timing(condition: str) -> dict:
     """One driving trial in real time through the loop process (as ``steerlab run``)."""
     import json
 
@@ -126,7 +126,7 @@ def _loop_timing(seconds_hint: str) -> dict:
 
     protocol = load_protocol(PROTOCOL)
     plan = build_plan(protocol, 1)
-    spec = next(t for t in plan.trials if t.condition == seconds_hint)
+    spec = next(t for t in plan.trials if t.condition == condition)
     plan = replace(plan, trials=(spec,))
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "S01.h5"
@@ -140,6 +140,20 @@ def _loop_timing(seconds_hint: str) -> dict:
         (rec,) = SessionFile(path).records()
     st = json.loads(rec.attrs["loop_stats"])
     planned = plan.setup(spec).n_samples
+    out = {
+        "condition": spec.condition,
+        "status": rec.status,
+        "abort_reason": rec.abort_reason,
+        "lost_samples": int(planned - rec.n_samples),
+    }
+    if "cycles" in st:
+        out |= {
+            "period_error_p99_ms": round(st["period_error_p99_ms"], 4),
+            "period_error_max_ms": round(st["period_error_max_ms"], 3),
+            "late_fraction": st["late_cycles"] / st["cycles"],
+        }
+    if "lateral_position_m" not in rec.extra:
+        return out
     y, w = rec.extra["lateral_position_m"], rec.extra["lane_width_m"]
     return {
         "condition": spec.condition,
@@ -187,9 +201,20 @@ def main(argv: list[str]) -> dict:
     ap.add_argument("--no-loop", action="store_true", help="skip the real-time loop trial")
     ap.add_argument("--no-view", action="store_true", help="skip the road view's frame rate")
     ap.add_argument("--loop-condition", default="D20_FREE")
+    ap.add_argument(
+        "--loop-only",
+        action="store_true",
+        help="only the real-time loop: the drive and, for comparison, BT12 of the same protocol",
+    )
     a = ap.parse_args(argv)
     load0 = os.getloadavg()
     out: dict = {"machine": machine()}
+    if a.loop_only:
+        out["live_loop"] = _loop_timing(a.loop_condition)
+        out["live_loop_boundary_task"] = _loop_timing("BT12")
+        out["load_avg_before"] = [round(x, 2) for x in load0]
+        out["load_avg_after"] = [round(x, 2) for x in os.getloadavg()]
+        return out
     out["kernel"] = _kernel_speed()
     with tempfile.TemporaryDirectory() as tmp:
         out["simulate"] = _simulate(Path(tmp), a.subjects, a.seed)
