@@ -171,7 +171,9 @@ class DeviceLoop:
                 m = min(blk, n_total - k)
                 buf = {c: np.empty(m) for c in LOOP_CHANNELS}
                 if vehicle is not None:
-                    buf.update({c: np.empty(m) for c in DRIVING_CHANNELS})
+                    # One copy per cycle into a 2-D block; the channels are its rows (views).
+                    drv = np.empty((len(DRIVING_CHANNELS), m))
+                    buf.update({c: drv[i] for i, c in enumerate(DRIVING_CHANNELS)})
                 filled = 0  # samples of this block complete
                 try:
                     for j in range(m):
@@ -216,8 +218,7 @@ class DeviceLoop:
                         ang, vel = r.angle_rad, r.velocity_rad_s
                         if vehicle is not None:
                             ta = vehicle.cycle(ang)
-                            for i, c in enumerate(DRIVING_CHANNELS):
-                                buf[c][j] = vehicle.row[i]
+                            drv[:, j] = vehicle.row
                         cmd = loop_command(tp + ta, ang, vel, cmd, k_sw, b_sw, limits)
                         if cmd == 0.0:  # loop_command's answer to a non-finite input, or a zero
                             bad = nonfinite_input(
