@@ -104,6 +104,22 @@ class DrivingWorld(World):
         self._hand_of: dict | None = None
         self._hand = np.zeros(0)
 
+    def warm_up(self, behaviour: ConditionBehaviour) -> None:
+        """Compile (or load) the driving paths too, so a drive's first live cycle is not a
+        compile (the simulated drive node would miss its SYNCs)."""
+        super().warm_up(behaviour)
+        from steerlab.hardware.sim.driver import ANCHORS
+        from steerlab.protocols.driving import DrivingCondition, DrivingSetup, RoadSpec, VehicleSpec
+
+        setup = DrivingSetup(DrivingCondition(10.0), VehicleSpec(), RoadSpec().generate(50.0))
+        drive = DrivingBehaviour(setup, {c: behaviour for c, _ in ANCHORS})
+        self.begin_trial(drive.base(), 0.5, seed=0, schedule=drive)
+        self.run(np.zeros(2))
+        self.read()
+        self.step(0.0)
+        self._trial = False
+        self.driving = None
+
     def _hand_block(self) -> np.ndarray:
         """The arm's extra torque of the current noise block: remnant + the driver's steering
         (filled sample by sample as the driver acts)."""
