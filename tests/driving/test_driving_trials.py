@@ -238,3 +238,14 @@ def test_the_aligning_torque_is_inside_the_safety_limits():
     with pytest.raises(TrialFault, match="non-finite motor command input"):
         for block in rig.batch_loop().run_trial(replace(setup, driving=broken), LoopControl()):
             assert np.all(block["motor_command_Nm"] == 0.0)
+
+
+def test_a_protocol_file_in_the_working_folder_wins_over_the_shipped_one(tmp_path, monkeypatch):
+    own = fast_protocol_text().replace('name = "pronker2017"', 'name = "mine"')
+    (tmp_path / "driving.toml").write_text(own)
+    monkeypatch.chdir(tmp_path)
+    assert load_protocol("driving.toml").name == "mine"
+    (tmp_path / "driving.toml").unlink()
+    assert load_protocol("driving.toml").name == "driving"  # the shipped one, by name
+    with pytest.raises(ProtocolError, match="nothere.toml: cannot read protocol file"):
+        load_protocol("nothere.toml")
