@@ -18,6 +18,11 @@ Time-varying trials (``setup.schedule``): the display is told each change of tas
 ``sample_extras``, if given, is read once per cycle (after the sensors) and its values are logged
 as extra channels (the simulated rig's true arm parameters).
 
+Driving trials (``setup.driving``): the host's vehicle (:class:`hardware.vehicle.VehicleRenderer`)
+gives the aligning torque for the measured angle each cycle; it is added to the perturbation
+inside ``loop_command`` (same limits and guard), its state is logged (``DRIVING_CHANNELS``) and
+shown to a display that has ``show_vehicle`` every 20 cycles.
+
 Pause: with ``pause_fades_out`` (a real rig, where time cannot stop) the perturbation fades out
 and the trial ends as aborted, to be run again; without it (the simulated rig) the loop simply
 waits, with the simulated world, until the engine asks for the next block.
