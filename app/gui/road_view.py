@@ -15,7 +15,8 @@ is drawn thick and the car turns red until it is back inside.
 Scene geometry comes from the same seeded road the loop drives (``protocols/driving.py``), rebuilt
 from the trial's ``driving`` attribute and the protocol (the road is not sent sample by sample).
 The car's state comes from a callable returning ``hardware.vehicle.DRIVING_CHANNELS`` (the
-simulated rig's display in process; None when unknown). Drawing is QPainter on a plain widget:
+simulated rig's display in process, every 20 cycles; else the newest block the engine received,
+:class:`VehicleFeed`, every 50 ms; None when unknown). Drawing is QPainter on a plain widget:
 a few hundred points per frame.
 """
 
@@ -31,6 +32,7 @@ from PySide6.QtGui import QBrush, QColor, QPainter, QPen, QPolygonF
 from PySide6.QtWidgets import QWidget
 
 import steerlab.app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
+from steerlab.hardware.vehicle import DRIVING_CHANNELS
 from steerlab.protocols.driving import DrivingCondition, DrivingSetup, Road, VehicleSpec
 from steerlab.protocols.protocol import Protocol
 
@@ -185,6 +187,28 @@ class RoadView(QWidget):
         p.setBrush(QBrush(QColor("#404040")))  # the windscreen: which way is ahead
         p.drawRoundedRect(QRectF(ox - cw * 0.38, oy - cl * 0.38, cw * 0.76, cl * 0.18), 3, 3)
         p.end()
+
+
+class VehicleFeed:
+    """Engine subscriber: the newest sample's car state, for a loop in another process (a lab
+    rig's loop process shows the car to no display here). Called on the engine's thread; the
+    Qt thread reads :meth:`latest` (one reference swap, no lock)."""
+
+    def __init__(self) -> None:
+        self._latest: dict[str, float] | None = None
+
+    def __call__(self, event: object) -> None:
+        from steerlab.protocols import events as ev
+
+        if isinstance(event, ev.SamplesAcquired):
+            ch = event.channels
+            if "road_distance_m" in ch and event.n:
+                self._latest = {c: float(ch[c][-1]) for c in DRIVING_CHANNELS if c in ch}
+        elif isinstance(event, ev.TrialStarted):
+            self._latest = None
+
+    def latest(self) -> dict[str, float] | None:
+        return self._latest
 
 
 class DrivingDisplay:

@@ -115,9 +115,10 @@ class ExperimenterWindow(QMainWindow):
         self.bridge = EngineBridge(self.live, self)
         self.bridge.connect_to(self.on_event)
         self.tracker_feed = TrackerFeed()
+        self.vehicle_feed = road_view.VehicleFeed()  # the car, for a loop in another process
         self.controller = SessionController(
             protocol, data_root, rig_path=rig_path, rig_factory=rig_factory,
-            subscribers=(self.bridge, self.tracker_feed),
+            subscribers=(self.bridge, self.tracker_feed, self.vehicle_feed),
         )  # fmt: skip
         self.dashboard = dashboard or SubjectDashboard(span_deg=dashboard_span(protocol))
         self.dashboard.angle_source = self._display_angle
@@ -594,7 +595,8 @@ class ExperimenterWindow(QMainWindow):
     # -- status -----------------------------------------------------------------------------------
     def _display_vehicle(self) -> dict[str, float] | None:
         rig = self.controller.rig
-        return None if rig is None else getattr(rig.display, "vehicle", None)
+        shown = None if rig is None else getattr(rig.display, "vehicle", None)
+        return shown or self.vehicle_feed.latest()
 
     def _display_angle(self) -> float | None:
         rig = self.controller.rig

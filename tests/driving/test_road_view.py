@@ -13,7 +13,7 @@ pytest.importorskip("PySide6")
 from PySide6.QtGui import QColor  # noqa: E402
 
 from steerlab.app.gui.rig import make_rig_loop  # noqa: E402
-from steerlab.app.gui.road_view import RoadView, road_of_trial  # noqa: E402
+from steerlab.app.gui.road_view import RoadView, VehicleFeed, road_of_trial  # noqa: E402
 from steerlab.app.gui.session_window import ExperimenterWindow  # noqa: E402
 from steerlab.protocols import events as ev  # noqa: E402
 from steerlab.protocols.driving import (  # noqa: E402
@@ -131,3 +131,17 @@ def test_a_driving_trial_runs_through_the_live_loop_with_the_road_on_the_dashboa
     rig = rigs[0]
     assert set(rig.display.vehicle) >= {"road_distance_m", "lateral_position_m"}
     w.close()
+
+
+def test_the_vehicle_feed_keeps_the_newest_car_state_from_the_engine():
+    feed = VehicleFeed()
+    assert feed.latest() is None
+    block = {"time_s": np.arange(3) / 1000, "road_distance_m": np.array([1.0, 1.1, 1.2]),
+             "lateral_position_m": np.array([0.0, 0.1, 0.2]),
+             "heading_error_rad": np.zeros(3)}  # fmt: skip
+    feed(ev.SamplesAcquired("k", 0, block))
+    got = feed.latest()
+    assert got["road_distance_m"] == pytest.approx(1.2)
+    assert got["lateral_position_m"] == pytest.approx(0.2)
+    feed(ev.SamplesAcquired("k", 3, {"time_s": np.arange(3) / 1000}))  # a boundary task's block
+    assert feed.latest()["road_distance_m"] == pytest.approx(1.2)
