@@ -139,6 +139,14 @@ def write_report(
         t0 = time.perf_counter()
         tracking = analyse_tracking(records)
         timings["tracking"] = time.perf_counter() - t0
+    driving = None
+    if any(r.driving for r in records):
+        # Only studies with driving trials get the driving section (analysis.driving_report).
+        from steerlab.analysis.driving_report import report_section
+
+        t0 = time.perf_counter()
+        driving = report_section(records, figures=figures)
+        timings["driving"] = time.perf_counter() - t0
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
@@ -148,6 +156,8 @@ def write_report(
         doc = res.to_dict()
         if tracking is not None:
             doc["tracking"] = json_clean(tracking.to_dict())
+        if driving is not None:
+            doc["driving"] = json_clean(driving[0])
         text = json.dumps(doc, allow_nan=False, ensure_ascii=False, indent=1)
         (tmp / RESULTS_JSON).write_text(text + "\n", encoding="utf-8")
         step(PER_SUBJECT_CSV)
@@ -171,6 +181,8 @@ def write_report(
                 uri = F.png_data_uri(fig)
                 plt.close(fig)
             extra.append(html_section(tracking, uri))
+        if driving is not None:
+            extra.append(driving[1])
         step(INDEX_HTML)
         t0 = time.perf_counter()
         page = html_page(res, images, records, extra_sections=extra)

@@ -382,6 +382,8 @@ def _skip_reason(rec: TrialRecord) -> str | None:
         return rec.abort_reason or "damaged"
     if rec.status != STATUS_COMPLETE:
         return f"unknown status {rec.status!r}"
+    if rec.driving:
+        return "driving trial: see the driving section"
     if rec.time_varying:
         # Its task changed within the trial: no single operating point (analysis.tracking).
         return "time-varying trial (the task changed within it): see the tracking section"

@@ -18,6 +18,11 @@ Time-varying trials (``setup.schedule``): the display is told each change of tas
 ``sample_extras``, if given, is read once per cycle (after the sensors) and its values are logged
 as extra channels (the simulated rig's true arm parameters).
 
+Driving trials (``setup.driving``): the host's vehicle (:class:`hardware.vehicle.VehicleRenderer`)
+gives the aligning torque for the measured angle each cycle; it is added to the perturbation
+inside ``loop_command`` (same limits and guard), its state is logged (``DRIVING_CHANNELS``) and
+shown to a display that has ``show_vehicle`` every 20 cycles.
+
 Pause: with ``pause_fades_out`` (a real rig, where time cannot stop) the perturbation fades out
 and the trial ends as aborted, to be run again; without it (the simulated rig) the loop simply
 waits, with the simulated world, until the engine asks for the next block.
@@ -33,6 +38,8 @@ import numpy as np
 
 from steerlab.hardware.interfaces import Display, GloveUnit, TorqueSensor, WheelDrive
 from steerlab.hardware.safety import SafetyLimits, loop_command, nonfinite_input, warm_up
+from steerlab.hardware.vehicle import DRIVING_CHANNELS, VehicleRenderer
+from steerlab.hardware.vehicle import warm_up as vehicle_warm_up
 from steerlab.protocols.engine import LoopControl, TrialFault
 from steerlab.protocols.session import TrialSetup
 
@@ -140,6 +147,12 @@ class DeviceLoop:
         tp_all = setup.perturbation_nm
         k_sw, b_sw = setup.wheel_k, setup.wheel_b
         limits = self.safety.kernel_vector(fs)
+        # A driving trial: the vehicle's aligning torque joins the perturbation in the command.
+        vehicle = None
+        if setup.driving is not None:
+            vehicle_warm_up()  # compiled now, not in the first cycle
+            vehicle = VehicleRenderer(setup.driving, fs)
+        ta = 0.0
         stall_s = self.safety.loop_stall_s
         cmd = 0.0
         errors: list[float] = []
@@ -168,6 +181,10 @@ class DeviceLoop:
             while k < n_total:
                 m = min(blk, n_total - k)
                 buf = {c: np.empty(m) for c in LOOP_CHANNELS}
+                if vehicle is not None:
+                    # One copy per cycle into a 2-D block; the channels are its rows (views).
+                    drv = np.empty((len(DRIVING_CHANNELS), m))
+                    buf.update({c: drv[i] for i, c in enumerate(DRIVING_CHANNELS)})
                 filled = 0  # samples of this block complete
                 try:
                     for j in range(m):
@@ -214,10 +231,14 @@ class DeviceLoop:
                             fade = max(0.0, fade - fade_step)
                             tp *= fade
                         ang, vel = r.angle_rad, r.velocity_rad_s
-                        cmd = loop_command(tp, ang, vel, cmd, k_sw, b_sw, limits)
+                        if vehicle is not None:
+                            ta = vehicle.cycle(ang)
+                            drv[:, j] = vehicle.row
+                        cmd = loop_command(tp + ta, ang, vel, cmd, k_sw, b_sw, limits)
                         if cmd == 0.0:  # loop_command's answer to a non-finite input, or a zero
                             bad = nonfinite_input(
                                 perturbation_torque_Nm=tp,
+                                aligning_torque_Nm=ta,
                                 wheel_angle_rad=r.angle_rad,
                                 wheel_velocity_rad_s=r.velocity_rad_s,
                                 wheel_k=k_sw,
@@ -248,6 +269,8 @@ class DeviceLoop:
                             self.sample_sink(k + j, buf, j)
                         if self.display is not None and (k + j) % 20 == 0:
                             self.display.show_angle(r.angle_rad)
+                            if vehicle is not None and hasattr(self.display, "show_vehicle"):
+                                self.display.show_vehicle(vehicle.channels())
                         if k + j == next_change:
                             _, cond, bd = changes.pop(0)
                             self.display.show_condition(cond, bd)

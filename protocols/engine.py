@@ -418,4 +418,7 @@ class SessionEngine:
         if setup.schedule is not None:
             # A time-varying trial: when the task changed (docs/data-format.md).
             attrs["schedule"] = setup.schedule.to_dict()
+        if setup.driving is not None:
+            # A driving trial: speed, friction, perturbation level, road (docs/data-format.md).
+            attrs["driving"] = setup.driving.to_dict()
         return attrs

@@ -12,6 +12,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from steerlab.protocols import driving as drv
 from steerlab.protocols.names import UnsafeNameError, check_name
 from steerlab.protocols.perturbation import PerturbationSpec
 
@@ -52,6 +53,9 @@ class Condition:
     segments: tuple[Segment, ...] = ()
     transition: str = "step"  # "step", or "ramp": linear over transition_s from each change
     transition_s: float = 0.0
+    # Driving conditions only (``task = "driving"``, protocols/driving.py): the road is the
+    # task; boundary_deg is inf (no lines).
+    driving: drv.DrivingCondition | None = None
 
     @property
     def time_varying(self) -> bool:
@@ -81,6 +85,8 @@ class Protocol:
     description: str = ""
     source_text: str = ""  # the TOML as read, stored with every session
     source_path: str = ""
+    vehicle: drv.VehicleSpec = field(default_factory=drv.VehicleSpec)  # driving conditions
+    road: drv.RoadSpec = field(default_factory=drv.RoadSpec)
 
     @property
     def condition_names(self) -> list[str]:
@@ -88,7 +94,7 @@ class Protocol:
 
     @property
     def stationary_condition_names(self) -> list[str]:
-        return [c.name for c in self.conditions if not c.time_varying]
+        return [c.name for c in self.conditions if not c.time_varying and c.driving is None]
 
     def condition(self, name: str) -> Condition:
         for c in self.conditions:
@@ -164,7 +170,15 @@ def _section(doc: dict, name: str, keys: dict, file: str) -> dict:
     return out
 
 
-_CONDITION_KEYS = {"name", "boundary_deg", "instructions", "segments", "transition", "transition_s"}
+_CONDITION_KEYS = {
+    "name",
+    "boundary_deg",
+    "instructions",
+    "segments",
+    "transition",
+    "transition_s",
+    *drv.CONDITION_KEYS,
+}
 
 
 def _time_varying_condition(
@@ -245,7 +259,11 @@ def _finite_everywhere(doc: Any, file: str) -> None:
 
     def where(path: list) -> str:
         head, rest = path[0], path[1:]
-        if isinstance(head, str) and head in ("trial", "perturbation", "wheel") and rest:
+        if (
+            isinstance(head, str)
+            and head in ("trial", "perturbation", "wheel", "vehicle", "road")
+            and rest
+        ):
             out, rest = f"[{head}]", rest
         elif head == "conditions" and rest and isinstance(rest[0], int):
             out, rest = f"[[conditions]] #{rest[0] + 1}", rest[1:]
@@ -294,6 +312,8 @@ def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
         "perturbation",
         "wheel",
         "conditions",
+        "vehicle",
+        "road",
     }
     unknown = set(doc) - known_top
     if unknown:
@@ -395,6 +415,18 @@ def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
         instr = c.get("instructions", "")
         if not isinstance(instr, str):
             raise ProtocolError(f"{where}.instructions: expected a string")
+        if "task" in c:
+            try:
+                dc = drv.parse_condition(c, f"{where} ({c['name'].strip()})")
+            except ValueError as e:
+                raise ProtocolError(str(e)) from None
+            conds.append(Condition(c["name"].strip(), math.inf, instr, driving=dc))
+            continue
+        for key in drv.CONDITION_KEYS:
+            if key in c:
+                raise ProtocolError(
+                    f'{where} ({c["name"]}).{key}: only for a driving condition (task = "driving")'
+                )
         if "segments" in c:
             # Checked once every stationary condition is known (segments may name later ones).
             conds.append(Condition(c["name"].strip(), math.nan, instr))
@@ -411,7 +443,7 @@ def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
         if not bd >= 0:
             raise ProtocolError(f"{where} ({c['name']}).boundary_deg: must be ≥ 0 or inf, got {bd}")
         conds.append(Condition(c["name"].strip(), bd, instr))
-    stationary = {c.name: c for c in conds if not math.isnan(c.boundary_deg)}
+    stationary = {c.name: c for c in conds if not math.isnan(c.boundary_deg) and c.driving is None}
     for i, (c, raw) in enumerate(zip(conds, raw_conds, strict=True)):
         if "segments" in raw:
             conds[i] = _time_varying_condition(
@@ -422,6 +454,11 @@ def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
     if dup:
         raise ProtocolError(f"{file}: [[conditions]]: duplicate condition name(s) {sorted(dup)}")
 
+    try:
+        vehicle = drv.parse_vehicle(doc.get("vehicle"), file)
+        road = drv.parse_road(doc.get("road"), file)
+    except ValueError as e:
+        raise ProtocolError(str(e)) from None
     return Protocol(
         name=name,
         description=str(doc.get("description", "")),
@@ -432,16 +469,25 @@ def parse_protocol(text: str, file: str = "<protocol>") -> Protocol:
         loop_rate_hz=loop,
         source_text=text,
         source_path=file,
+        vehicle=vehicle,
+        road=road,
     )
 
 
 def load_protocol(path: str | Path | None = None) -> Protocol:
-    """Read a protocol file; None gives the default (the paper's) protocol."""
+    """Read a protocol file; None gives the default (the paper's) protocol. A bare file name
+    that does not exist in the working folder names a protocol shipped in ``protocols/``."""
     if path is None:
         default = resources.files("steerlab.protocols").joinpath(DEFAULT_PROTOCOL)
         text = default.read_text(encoding="utf-8")
         return parse_protocol(text, DEFAULT_PROTOCOL)
     p = Path(path)
+    if not p.exists() and str(p) == p.name:
+        # A bare name that is no file here: one of the protocols shipped with Steerlab
+        # (``--protocol driving.toml``, ``--protocol tracking.toml``).
+        shipped = resources.files("steerlab.protocols").joinpath(p.name)
+        if p.suffix == ".toml" and shipped.is_file():
+            return parse_protocol(shipped.read_text(encoding="utf-8"), p.name)
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as e:

@@ -66,8 +66,14 @@ class TrialRecord:
 
     @property
     def time_varying(self) -> bool:
-        """Whether the task changed within the trial (it has a ``schedule``)."""
-        return bool(self.attrs.get("schedule"))
+        """Whether the task changed within the trial (it has a ``schedule``, or it is a driving
+        trial: the road changes along the drive)."""
+        return bool(self.attrs.get("schedule")) or self.driving
+
+    @property
+    def driving(self) -> bool:
+        """Whether this is a driving trial (it has a ``driving`` attribute)."""
+        return bool(self.attrs.get("driving"))
 
     @property
     def usable(self) -> bool:

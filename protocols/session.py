@@ -8,6 +8,7 @@ from functools import cached_property
 
 import numpy as np
 
+from steerlab.protocols.driving import DrivingSetup, road_length_m
 from steerlab.protocols.latin_square import condition_order
 from steerlab.protocols.perturbation import PerturbationDesign, design_multisine
 from steerlab.protocols.protocol import Condition, Protocol
@@ -169,6 +170,7 @@ class TrialSetup:
     wheel_b: float
     schedule: ConditionSchedule | None = None  # time-varying trials only
     hands_off: bool = False  # a rig check: nobody holds the wheel (analysis/rigcheck.py)
+    driving: DrivingSetup | None = None  # driving trials only (protocols/driving.py)
 
     @property
     def n_samples(self) -> int:
@@ -225,16 +227,28 @@ class SessionPlan:
         schedule = None
         if cond.time_varying:
             schedule = ConditionSchedule.build(cond, p, len(self.perturbation_samples))
+        tp, driving = self.perturbation_samples, None
+        if cond.driving is not None:
+            # Every repetition has a road of its own, the same for every subject.
+            trial_s = len(tp) / fs
+            road = p.road.generate(
+                road_length_m(cond.driving, trial_s), seed=p.road.seed + spec.repetition
+            )
+            driving = DrivingSetup(cond.driving, p.vehicle, road)
+            if cond.driving.perturbation_level != 1.0:
+                tp = tp * cond.driving.perturbation_level
+                tp.setflags(write=False)
         return TrialSetup(
             spec=spec,
             attempt=attempt,
             fs_hz=fs,
-            perturbation_nm=self.perturbation_samples,
+            perturbation_nm=tp,
             measured_start=start,
             measured_stop=stop,
             wheel_k=p.wheel.stiffness_nm_per_rad,
             wheel_b=p.wheel.damping_nms_per_rad,
             schedule=schedule,
+            driving=driving,
         )
 
     def trial(self, trial_index: int) -> TrialSpec:

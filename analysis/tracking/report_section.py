@@ -90,7 +90,8 @@ class TrackingReport:
 
 def analyse_tracking(records: Sequence[TrialRecord]) -> TrackingReport | None:
     """None when no record is a (complete, measured) time-varying trial."""
-    varying = [r for r in records if is_time_varying(r) and r.usable]
+    # Driving trials vary too, but have a section of their own (analysis.driving_report).
+    varying = [r for r in records if is_time_varying(r) and r.usable and not r.driving]
     if not varying:
         return None
     stationary = [r for r in records if not is_time_varying(r) and r.usable]

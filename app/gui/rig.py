@@ -66,6 +66,7 @@ class DisplayState:
         self.boundary_deg = math.inf
         self.angle_rad = 0.0
         self.updates = 0
+        self.vehicle: dict[str, float] | None = None
 
     def show_condition(self, condition: str, boundary_deg: float) -> None:
         self.condition, self.boundary_deg = condition, float(boundary_deg)
@@ -73,6 +74,10 @@ class DisplayState:
     def show_angle(self, angle_rad: float) -> None:
         self.angle_rad = float(angle_rad)
         self.updates += 1
+
+    def show_vehicle(self, channels: dict[str, float]) -> None:
+        """A driving trial: the car on the road (app/gui/road_view.py reads it)."""
+        self.vehicle = channels  # one reference swap: the Qt thread sees the old or the new
 
 
 @dataclass

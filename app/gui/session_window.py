@@ -39,6 +39,7 @@ from PySide6.QtWidgets import (
 )
 
 import steerlab.app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
+from steerlab.app.gui import road_view
 from steerlab.app.gui.bridge import BridgeFault, EngineBridge
 from steerlab.app.gui.controller import (
     ABORTED,
@@ -119,14 +120,16 @@ class ExperimenterWindow(QMainWindow):
         self.bridge = EngineBridge(self.live, self)
         self.bridge.connect_to(self.on_event)
         self.tracker_feed = TrackerFeed()
+        self.vehicle_feed = road_view.VehicleFeed()  # the car, for a loop in another process
         self.controller = SessionController(
             protocol, data_root, rig_path=rig_path, rig_factory=rig_factory,
-            subscribers=(self.bridge, self.tracker_feed),
+            subscribers=(self.bridge, self.tracker_feed, self.vehicle_feed),
         )  # fmt: skip
         self.dashboard = dashboard or SubjectDashboard(span_deg=dashboard_span(protocol))
         self.dashboard.angle_source = self._display_angle
         # Esc stops from the subject's window too: it may have the keyboard focus.
         QShortcut(QKeySequence(Qt.Key.Key_Escape), self.dashboard, self.emergency_stop)
+        self.road = road_view.install(self.dashboard, protocol, self._display_vehicle)
         self.last_quality: QualityCheck | None = None
         self.events_seen: list[object] = []  # for tests and the log; events are small
         self._closing = False
@@ -435,6 +438,7 @@ class ExperimenterWindow(QMainWindow):
             b = float(event.attributes.get("boundary_deg", math.inf))
             self.plots.set_boundary(b)
             self.dashboard.show_condition(event.condition, b)
+            self.road.trial_started(event.attributes)  # a driving trial shows the road
             self.dashboard.set_active(True, HANDS_OFF_MESSAGE if c.is_rig_check else "")
             self._show_next()
         elif isinstance(event, ev.TrialEnded):
@@ -602,6 +606,11 @@ class ExperimenterWindow(QMainWindow):
             self.plots.set_boundary(spec.boundary_deg)
 
     # -- status -----------------------------------------------------------------------------------
+    def _display_vehicle(self) -> dict[str, float] | None:
+        rig = self.controller.rig
+        shown = None if rig is None else getattr(rig.display, "vehicle", None)
+        return shown or self.vehicle_feed.latest()
+
     def _display_angle(self) -> float | None:
         rig = self.controller.rig
         if rig is not None and rig.display.updates:

@@ -19,6 +19,8 @@ import numpy as np
 from steerlab.hardware.interfaces import DriveReading, GripReading
 from steerlab.hardware.loop import LOOP_CHANNELS, DeviceLoop
 from steerlab.hardware.safety import SafetyLimits
+from steerlab.hardware.sim.driver import ANCHORS, DrivingBehaviour
+from steerlab.hardware.sim.driving_world import DrivingWorld
 from steerlab.hardware.sim.physiology import (
     ArmParams,
     ConditionBehaviour,
@@ -27,6 +29,7 @@ from steerlab.hardware.sim.physiology import (
 )
 from steerlab.hardware.sim.schedule import DEFAULT_TAU_S, BehaviourSchedule, schedule_for
 from steerlab.hardware.sim.world import TRUTH_CHANNELS, World, WorldConfig
+from steerlab.hardware.vehicle import DRIVING_CHANNELS
 from steerlab.protocols.engine import LoopControl, TrialFault
 from steerlab.protocols.protocol import VirtualWheel
 from steerlab.protocols.session import TrialSetup
@@ -70,6 +73,15 @@ class SimulatedSubject:
         of = {c: self._behaviour_in(c, setup, cfg) for c in set(sch.conditions)}
         return schedule_for(sch, of, self.adaptation_tau_s, self.grip_adaptation_tau_s)
 
+    def driving_behaviour(self, setup: TrialSetup, cfg: WorldConfig) -> DrivingBehaviour:
+        """For a driving trial: arm and grip following the road (hardware/sim/driver.py)."""
+        if setup.driving is None:
+            raise ValueError(f"trial {setup.key} is not a driving trial")
+        anchors = {c: self._behaviour_in(c, setup, cfg) for c, _ in ANCHORS}
+        return DrivingBehaviour(
+            setup.driving, anchors, self.adaptation_tau_s, self.grip_adaptation_tau_s
+        )
+
     def trial_seed(self, setup: TrialSetup) -> list[int]:
         return [self.physiology.seed, setup.spec.trial_index, setup.attempt]
 
@@ -85,7 +97,7 @@ class SimulatedRig:
     ) -> None:
         self.cfg = cfg or WorldConfig()
         self.subject = subject
-        self.world = World(self.cfg, wheel)
+        self.world = DrivingWorld(self.cfg, wheel)  # the plain World outside driving trials
         self.drive = SimulatedDrive(self.world)
         self.torque_sensor = SimulatedTorqueSensor(self.world)
         self.glove = SimulatedGlove(self.world)
@@ -95,8 +107,12 @@ class SimulatedRig:
         if abs(setup.fs_hz - self.cfg.fs_hz) > 1e-9:
             self.cfg = replace(self.cfg, fs_hz=setup.fs_hz)
             self.world.cfg = self.cfg
+        schedule: BehaviourSchedule | DrivingBehaviour | None
         if setup.hands_off:
             b, schedule = HANDS_OFF, None
+        elif setup.driving is not None:
+            drive = self.subject.driving_behaviour(setup, self.cfg)
+            b, schedule = drive.base(), drive
         else:
             b = self.subject.behaviour(setup, self.cfg)
             schedule = self.subject.behaviour_schedule(setup, self.cfg)
@@ -182,12 +198,17 @@ class SimulatedDisplay:
         self.condition: str | None = None
         self.boundary_deg = float("inf")
         self.angle_rad = 0.0
+        self.vehicle: dict[str, float] = {}
 
     def show_condition(self, condition: str, boundary_deg: float) -> None:
         self.condition, self.boundary_deg = condition, boundary_deg
 
     def show_angle(self, angle_rad: float) -> None:
         self.angle_rad = angle_rad
+
+    def show_vehicle(self, channels: dict[str, float]) -> None:
+        """A driving trial: the car on the road (``hardware.vehicle.DRIVING_CHANNELS``)."""
+        self.vehicle = dict(channels)
 
 
 class BatchLoop:
@@ -233,6 +254,8 @@ class BatchLoop:
                 assert tuple(block) == LOOP_CHANNELS
                 if rig.world.scheduled:
                     block.update({c: out[c] for c in TRUTH_CHANNELS})
+                if setup.driving is not None:
+                    block.update({c: out[c] for c in DRIVING_CHANNELS})
                 while changes and changes[0][0] < k + m:
                     _, cond, bd = changes.pop(0)
                     rig.display.show_condition(cond, bd)
