@@ -118,6 +118,10 @@ def _cmd_report(a: argparse.Namespace) -> int:
     from steerlab.analysis.executors import executor_for
 
     options = AnalysisOptions(fit=fit, compare_weightings=not a.no_compare)
+    if a.jobs is None:
+        import os
+
+        a.jobs = min(os.cpu_count() or 1, 4)
     with executor_for(a.scheduler, a.jobs) as ex:
         write_report(
             a.dir, a.out, executor=ex, jobs=a.jobs, progress=Progress("report"), options=options
@@ -219,7 +223,13 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("report", help="analyse a study and write the report")
     r.add_argument("dir")
     r.add_argument("--out", required=True)
-    r.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
+    r.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="worker processes for the trials and the subjects' fits (default: the CPU count, "
+        "at most 4)",
+    )
     r.add_argument("--scheduler", help=SCHEDULER_HELP)
     r.add_argument(
         "--weighting",
