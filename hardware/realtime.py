@@ -11,6 +11,13 @@ What a lab does for hard guarantees, and what Steerlab does:
   simulated world) is done: a FIFO process busy for seconds starves every other of its
   priority on that CPU (a second session's start-up stopped the first one's glove stream);
 - memory locked with ``mlockall`` (no page faults inside the loop): when permitted;
+- CPU idle states limited to the shallowest (a PM QoS request of 0 µs on
+  ``/dev/cpu_dma_latency``, held while the process lives, as ``cyclictest`` does): when
+  permitted. An idle core otherwise sleeps in a state it leaves in tens to hundreds of µs, and in
+  a virtual machine a halted vCPU is woken through the hypervisor: each SYNC → TPDO round trip to
+  the drive then waits for one or two such wake-ups. Measured on the 2-core development VM at
+  load 1 (docs/benchmarks.md, live_loop): without it the default simulated rig aborted ("cycle
+  20–28 ms late", 7–32 % late cycles); with it the trial completed, p99 0.06 ms;
 - isolated cores (``isolcpus``, cpusets) and a PREEMPT_RT kernel: the lab's system
   administration, not something a program should do to its host.
 """
@@ -32,6 +39,9 @@ SINGLE_THREADED_MATH = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MK
 SWITCH_INTERVAL_S = 2e-4
 FIFO_PRIORITY = 20
 MCL_CURRENT, MCL_FUTURE = 1, 2
+CPU_DMA_LATENCY = "/dev/cpu_dma_latency"
+#: The open PM QoS request: the kernel keeps it while the file is open (this process's life).
+_dma_latency_fd: int | None = None
 
 
 @contextlib.contextmanager
@@ -85,11 +95,32 @@ def tune_process(*, fifo: bool = True, lock_memory: bool = True) -> dict:
                 applied["mlockall"] = f"not permitted ({os.strerror(ctypes.get_errno())})"
         except OSError as e:
             applied["mlockall"] = f"unavailable ({e})"
+    if fifo:
+        applied["cpu_dma_latency_us"] = hold_shallow_idle()
     try:
         applied["cpus"] = sorted(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         pass
     return applied
+
+
+def hold_shallow_idle() -> object:
+    """Ask the kernel (PM QoS) to keep every CPU in its shallowest idle state while this
+    process lives; 0 (the latency in µs) when granted, else why not."""
+    global _dma_latency_fd
+    if _dma_latency_fd is not None:
+        return 0
+    try:
+        fd = os.open(CPU_DMA_LATENCY, os.O_WRONLY)
+    except OSError as e:
+        return f"not permitted ({e.strerror})"
+    try:
+        os.write(fd, (0).to_bytes(4, sys.byteorder, signed=True))
+    except OSError as e:
+        os.close(fd)
+        return f"not permitted ({e.strerror})"
+    _dma_latency_fd = fd
+    return 0
 
 
 def _fifo_for_other_threads() -> None:
@@ -113,7 +144,11 @@ def realtime_summary(applied: dict) -> str:
     mem = "memory locked" if lock is True else f"memory not locked ({lock})"
     cpus = applied.get("cpus")
     where = f"CPUs {cpus}" if cpus is not None else "CPUs unknown"
-    return f"control loop: {prio}, {mem}, {where}"
+    idle = applied.get("cpu_dma_latency_us")
+    if idle is None:
+        return f"control loop: {prio}, {mem}, {where}"
+    shallow = "shallow CPU idle" if idle == 0 else f"deep CPU idle allowed ({idle})"
+    return f"control loop: {prio}, {mem}, {shallow}, {where}"
 
 
 def realtime_warnings(applied: dict) -> list[str]:
@@ -130,6 +165,13 @@ def realtime_warnings(applied: dict) -> list[str]:
         out.append(
             f"the control loop's memory is not locked (mlockall: {applied.get('mlockall')}); a "
             "page fault can delay a cycle (grant CAP_IPC_LOCK or raise RLIMIT_MEMLOCK)"
+        )
+    idle = applied.get("cpu_dma_latency_us")
+    if idle is not None and idle != 0:
+        out.append(
+            f"deep CPU idle states stay allowed ({CPU_DMA_LATENCY}: {idle}); waking an idle "
+            "core can delay the drive's answers by a cycle (run as root, or disable deep "
+            "C-states in the BIOS or with the kernel's idle settings)"
         )
     cpus = applied.get("cpus")
     if cpus is not None and len(cpus) < 2:
