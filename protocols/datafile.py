@@ -61,6 +61,13 @@ UNITS = {
     "true_b_c_Nms_per_rad": "N·m·s/rad",
     "true_k_c_Nm_per_rad": "N·m/rad",
     "true_grip_mean_N": "N",
+    # Driving trials (hardware.vehicle.DRIVING_CHANNELS, docs/driving.md).
+    "road_distance_m": "m",
+    "lateral_position_m": "m",
+    "heading_error_rad": "rad",
+    "road_curvature_1pm": "1/m",
+    "lane_width_m": "m",
+    "aligning_torque_Nm": "N·m",
 }
 SIGN_CONVENTIONS = (
     "wheel_angle_rad: positive counter-clockwise seen by the driver; "
@@ -169,13 +176,34 @@ def load_unsaved(path: str | Path) -> tuple[int, dict[str, np.ndarray]]:
 _UNSAVED_META = ("first_sample", "session_file", "trial_key")
 
 
-def session_bytes(plan, channels: int = 11, chunk_samples: int = 8192, dtype_bytes: int = 4) -> int:
-    """Bytes the session file of ``plan`` takes at most (whole chunks: HDF5 allocates them)."""
+#: Channels every trial logs (time, host time, perturbation, driver torque, angle, velocity,
+#: motor command and torque, grip total and per hand), the simulated truth of a time-varying or
+#: driving trial, and a driving trial's own (hardware.vehicle.DRIVING_CHANNELS).
+BASE_CHANNELS, TRUTH_CHANNEL_COUNT, DRIVING_CHANNEL_COUNT = 11, 5, 6
+
+
+def trial_channels(setup) -> int:
+    """How many channels the trial of ``setup`` (protocols.session.TrialSetup) logs at most."""
+    n = BASE_CHANNELS
+    if setup.schedule is not None or setup.driving is not None:
+        n += TRUTH_CHANNEL_COUNT
+    if setup.driving is not None:
+        n += DRIVING_CHANNEL_COUNT
+    return n
+
+
+def session_bytes(
+    plan, channels: int | None = None, chunk_samples: int = 8192, dtype_bytes: int = 4
+) -> int:
+    """Bytes the session file of ``plan`` takes at most (uncompressed, whole chunks: HDF5
+    allocates them); ``channels`` per trial, or by default what each trial logs
+    (:func:`trial_channels`)."""
     total = 256 * 1024  # file metadata, protocol text, attributes
-    per_sample = 8 + (channels - 1) * dtype_bytes  # time_s f8, the rest dtype
     for spec in plan.trials:
-        n = plan.setup(spec, 1).n_samples
-        chunks = -(-n // chunk_samples)
+        setup = plan.setup(spec, 1)
+        n_channels = trial_channels(setup) if channels is None else channels
+        per_sample = 8 + (n_channels - 1) * dtype_bytes  # time_s f8, the rest dtype
+        chunks = -(-setup.n_samples // chunk_samples)
         total += chunks * chunk_samples * per_sample + 64 * 1024
     return total
 

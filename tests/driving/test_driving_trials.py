@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 
+import h5py
 import numpy as np
 import pytest
 
@@ -13,7 +14,12 @@ from steerlab.hardware.sim.physiology import make_population
 from steerlab.hardware.sim.rig import simulated_rig
 from steerlab.hardware.sim.world import TRUTH_CHANNELS
 from steerlab.hardware.vehicle import DRIVING_CHANNELS
-from steerlab.protocols.datafile import SessionFile, SessionWriter
+from steerlab.protocols.datafile import (
+    SessionFile,
+    SessionWriter,
+    session_bytes,
+    trial_channels,
+)
 from steerlab.protocols.engine import LoopControl, SessionEngine
 from steerlab.protocols.events import SamplesAcquired
 from steerlab.protocols.protocol import ProtocolError, load_protocol, parse_protocol
@@ -218,6 +224,18 @@ def test_session_file_keeps_the_drive(tmp_path):
     for c in (*DRIVING_CHANNELS, *TRUTH_CHANNELS):
         assert len(d.extra[c]) == d.n_samples, c
     assert not any(c in b.extra for c in DRIVING_CHANNELS)
+    # Every channel says its unit, and the free-space check budgets for every channel written.
+    raw = 0
+    with h5py.File(tmp_path / "S01.h5", "r") as f:
+        for key, g in f["trials"].items():
+            names = [n for n, o in g.items() if isinstance(o, h5py.Dataset) and n != "marks"]
+            assert all(g[n].attrs["units"] for n in names), key
+            setup = next(short.setup(s) for s in short.trials if s.key() == key)
+            # at most: a batch loop has no host clock (host_time_s)
+            assert len(names) <= trial_channels(setup) <= len(names) + 1, key
+            raw += sum(g[n].size * g[n].dtype.itemsize for n in names)
+    assert session_bytes(short) >= raw > 0
+    assert session_bytes(short, channels=11) < session_bytes(short)
 
 
 def test_the_aligning_torque_is_inside_the_safety_limits():
