@@ -40,10 +40,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.signal import lfilter
 
 from steerlab.hardware.sim.physiology import ArmParams, ConditionBehaviour
-from steerlab.hardware.sim.schedule import DEFAULT_TAU_S, _alpha, _log_row
+from steerlab.hardware.sim.schedule import DEFAULT_TAU_S, LogLag, _log_row
 from steerlab.hardware.vehicle import preview_angle
 from steerlab.protocols.driving import G_MPS2, DrivingSetup
 
@@ -158,23 +157,11 @@ class DrivingResponse:
 
     def __init__(self, beh: DrivingBehaviour, fs_hz: float) -> None:
         self.beh, self.fs = beh, fs_hz
-        a_arm, a_grip = _alpha(beh.tau_arm_s, fs_hz), _alpha(beh.tau_grip_s, fs_hz)
-        self.alpha = np.array([a_arm] * 4 + [a_grip, a_grip, a_arm])
-        self.state = beh.target_log(np.zeros(1))[0]  # the drive starts settled
+        # the drive starts settled
+        self.lag = LogLag(beh.tau_arm_s, beh.tau_grip_s, fs_hz, beh.target_log(np.zeros(1))[0])
         self.k = 0
 
     def next_block(self, n: int) -> dict[str, np.ndarray]:
         target = self.beh.target_log(np.arange(self.k, self.k + n) / self.fs)
-        y = np.empty_like(target)
-        for j, a in enumerate(self.alpha):
-            y[:, j], _ = lfilter([a], [1.0, a - 1.0], target[:, j], zi=[(1.0 - a) * self.state[j]])
-        self.state = y[-1].copy()
         self.k += n
-        v = np.exp(y)
-        return {
-            "true_arm": v[:, :4],
-            "grip_mean_true_N": v[:, 4],
-            "grip_sd_N": v[:, 5],
-            "remnant_sd_Nm": v[:, 6],
-            "segment": np.zeros(n, dtype=int),
-        }
+        return self.lag.response(target, np.zeros(n, dtype=int))

@@ -30,10 +30,8 @@ from steerlab.hardware.sim.driver import N_DRIVER_STATE, DrivingBehaviour, drive
 from steerlab.hardware.sim.physiology import ConditionBehaviour
 from steerlab.hardware.sim.schedule import BehaviourSchedule
 from steerlab.hardware.sim.world import (
-    OUTPUTS,
     P_DT,
     P_HAS_DPAR,
-    TRUTH_CHANNELS,
     World,
     _advance,
     _measure,
@@ -132,35 +130,21 @@ class DrivingWorld(World):
     def run(self, tp: np.ndarray) -> dict[str, np.ndarray]:
         if self.driving is None:
             return super().run(tp)
-        if not self._trial:
-            raise RuntimeError("World.run before begin_trial")
-        tp = np.ascontiguousarray(tp, dtype=float)
-        n = len(tp)
-        out = np.empty((len(OUTPUTS), n))
-        rows = np.empty((len(DRIVING_CHANNELS), n))
-        extra = {k: np.empty(n) for k in ("grip_force_left_N", "grip_force_right_N", "grip_true_N")}
-        truth = np.empty((n, len(TRUTH_CHANNELS)))
+        rows = np.empty((len(DRIVING_CHANNELS), len(tp)))
         done = 0
-        while done < n:
-            self._ensure_block()
-            m = min(n - done, self.noise.block - self._k)
-            b = self._blk
+
+        def advance(b: dict, tp_block: np.ndarray, out_block: np.ndarray, m: int) -> None:
+            nonlocal done
             _advance_driving(
                 self.x, self.st, self.p, self.Ad, self.Bd, self.ring_r, self.ring_s,
-                tp[done : done + m], self._hand_block(), b["remnant_Nm"], b["velocity_noise"],
-                b["torque_noise"], self._dpar, out[:, done : done + m], self._k, m,
+                tp_block, self._hand_block(), b["remnant_Nm"], b["velocity_noise"],
+                b["torque_noise"], self._dpar, out_block, self._k, m,
                 self.safety_vec, self.vx, self.vp, self.road, self.grid, self.ds, self.dp,
                 self._k_i, rows[:, done : done + m],
             )  # fmt: skip
-            for key in extra:
-                extra[key][done : done + m] = b[key][self._k : self._k + m]
-            truth[done : done + m] = self._truth[self._k : self._k + m]
-            self._k += m
             done += m
-        self._n += n
-        res = {name: out[i] for i, name in enumerate(OUTPUTS)}
-        res.update(extra)
-        res.update({c: truth[:, i] for i, c in enumerate(TRUTH_CHANNELS)})
+
+        res = self._run_blocks(tp, advance, with_truth=True)
         res.update({c: rows[i] for i, c in enumerate(DRIVING_CHANNELS)})
         return res
 

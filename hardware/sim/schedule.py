@@ -73,27 +73,40 @@ class ScheduleResponse:
     def __init__(self, sched: BehaviourSchedule, fs_hz: float) -> None:
         self.sched = sched
         self.table = np.array([_log_row(b) for b in sched.behaviours])  # (segments, columns)
-        a_arm, a_grip = _alpha(sched.tau_arm_s, fs_hz), _alpha(sched.tau_grip_s, fs_hz)
-        self.alpha = np.array([a_arm] * 4 + [a_grip, a_grip, a_arm])
-        self.state = self.table[0].copy()  # the trial starts settled in its first condition
+        self.lag = LogLag(sched.tau_arm_s, sched.tau_grip_s, fs_hz, self.table[0])
         self.k = 0
 
     def next_block(self, n: int) -> dict[str, np.ndarray]:
         prev, cur, w = self.sched.schedule.blend(self.k, n)
         target = (1.0 - w)[:, None] * self.table[prev] + w[:, None] * self.table[cur]
+        self.k += n
+        return self.lag.response(target, cur)
+
+
+class LogLag:
+    """First-order lags, in the log domain, from a target behaviour (rows of ``_log_row``
+    columns) to the true one: the arm's four parameters and the remnant with ``tau_arm_s``, the
+    grip's mean and SD with ``tau_grip_s``. Stateful across blocks; starts settled at ``start``."""
+
+    def __init__(self, tau_arm_s: float, tau_grip_s: float, fs_hz: float, start) -> None:
+        a_arm, a_grip = _alpha(tau_arm_s, fs_hz), _alpha(tau_grip_s, fs_hz)
+        self.alpha = np.array([a_arm] * 4 + [a_grip, a_grip, a_arm])
+        self.state = np.array(start, dtype=float)
+
+    def response(self, target: np.ndarray, segment) -> dict[str, np.ndarray]:
+        """The true behaviour for a block of targets (samples × columns, log values)."""
         y = np.empty_like(target)
         for j, a in enumerate(self.alpha):
             # y[k] = y[k−1] + a (target[k] − y[k−1]); zi carries y[k−1] across blocks.
             y[:, j], _ = lfilter([a], [1.0, a - 1.0], target[:, j], zi=[(1.0 - a) * self.state[j]])
         self.state = y[-1].copy()
-        self.k += n
         v = np.exp(y)
         return {
             "true_arm": v[:, :4],
             "grip_mean_true_N": v[:, 4],
             "grip_sd_N": v[:, 5],
             "remnant_sd_Nm": v[:, 6],
-            "segment": cur,
+            "segment": segment,
         }
 
 

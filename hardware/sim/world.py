@@ -422,18 +422,8 @@ class World:
     # -- batch --------------------------------------------------------------------------
     def run(self, tp: np.ndarray) -> dict[str, np.ndarray]:
         """Advance len(tp) samples, rendering Table 1 inside the loop; returns all channels."""
-        if not self._trial:
-            raise RuntimeError("World.run before begin_trial")
-        tp = np.ascontiguousarray(tp, dtype=float)
-        n = len(tp)
-        out = np.empty((len(OUTPUTS), n))
-        extra = {k: np.empty(n) for k in ("grip_force_left_N", "grip_force_right_N", "grip_true_N")}
-        truth = None if not self.scheduled else np.empty((n, len(TRUTH_CHANNELS)))
-        done = 0
-        while done < n:
-            self._ensure_block()
-            m = min(n - done, self.noise.block - self._k)
-            b = self._blk
+
+        def advance(b: dict, tp_block: np.ndarray, out_block: np.ndarray, m: int) -> None:
             _advance(
                 self.x,
                 self.st,
@@ -442,18 +432,38 @@ class World:
                 self.Bd,
                 self.ring_r,
                 self.ring_s,
-                tp[done : done + m],
+                tp_block,
                 self._cmd1,
                 True,
                 b["remnant_Nm"],
                 b["velocity_noise"],
                 b["torque_noise"],
                 self._dpar,
-                out[:, done : done + m],
+                out_block,
                 self._k,
                 m,
                 self.safety_vec,
             )
+
+        return self._run_blocks(tp, advance, with_truth=self.scheduled)
+
+    def _run_blocks(self, tp, advance, *, with_truth: bool) -> dict[str, np.ndarray]:
+        """Run ``advance(block, tp_block, out_block, m)`` over the noise blocks that len(tp)
+        samples span (a batch kernel per block, ``self._k`` at the block's first sample), and
+        collect every channel."""
+        if not self._trial:
+            raise RuntimeError("World.run before begin_trial")
+        tp = np.ascontiguousarray(tp, dtype=float)
+        n = len(tp)
+        out = np.empty((len(OUTPUTS), n))
+        extra = {k: np.empty(n) for k in ("grip_force_left_N", "grip_force_right_N", "grip_true_N")}
+        truth = np.empty((n, len(TRUTH_CHANNELS))) if with_truth else None
+        done = 0
+        while done < n:
+            self._ensure_block()
+            m = min(n - done, self.noise.block - self._k)
+            b = self._blk
+            advance(b, tp[done : done + m], out[:, done : done + m], m)
             for key in extra:
                 extra[key][done : done + m] = b[key][self._k : self._k + m]
             if truth is not None and self._truth is not None:
