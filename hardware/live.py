@@ -335,8 +335,6 @@ class SampleRing:
 def _worker(
     rig, subject_number: int, conn, out: mp.Queue, estop, block_s: float, ring=None, lab=None
 ) -> None:
-    import gc
-
     from steerlab.hardware.realtime import tune_process
     from steerlab.hardware.safety import warm_up
 
@@ -381,7 +379,6 @@ def _worker(
             closing = False
             # A writable perturbation, so that an injected fault ("nan") can reach it.
             setup = replace(msg[1], perturbation_nm=np.array(msg[1].perturbation_nm))
-            gc.disable()  # no collection pauses inside the loop; collect between trials
             profile_to = os.environ.get("STEERLAB_LOOP_PROFILE")  # benchmarks/live_loop --profile
             if profile_to:
                 import cProfile
@@ -411,8 +408,6 @@ def _worker(
                 if profile_to:
                     profiler.disable()
                     profiler.dump_stats(profile_to)
-                gc.enable()
-                gc.collect()
             cpu = os.times()
             loop._stats["loop_process_cpu_s"] = cpu.user + cpu.system
             out.put(

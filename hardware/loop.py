@@ -30,6 +30,7 @@ waits, with the simulated world, until the engine asks for the next block.
 
 from __future__ import annotations
 
+import gc
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -166,6 +167,11 @@ class DeviceLoop:
         # Per cycle, s after its due time: the previous cycle's end, the sleep's return, the
         # command computed (health, sensors, glove, loop_command), the SYNC answered.
         trace = np.full((n_total, 4), np.nan) if self.trace else None
+        # No collection pauses inside a real-time trial (a full collection in a big process,
+        # such as a test runner's, takes hundreds of ms); collected at the trial's end.
+        gc_was_enabled = gc.isenabled()
+        if self.realtime:
+            gc.disable()
         self.drive.enable()
         try:
             if self.pre_trial is not None:
@@ -314,6 +320,9 @@ class DeviceLoop:
                 self.drive.disable()
             if watchdog is not None:
                 watchdog.join(1.0)
+            if self.realtime and gc_was_enabled:
+                gc.enable()
+                gc.collect()
             self._stats = {"samples": self._samples}
             if errors:
                 e = np.abs(np.asarray(errors)) * 1e3

@@ -14,7 +14,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from steerlab.protocols.protocol import load_protocol, parse_protocol  # noqa: E402
-from tests.helpers import fast_protocol_text  # noqa: E402
+from tests.helpers import fast_protocol_text, lenient_rig_text  # noqa: E402
 
 
 @pytest.fixture
@@ -31,4 +31,12 @@ def fast_protocol():
 def fast_protocol_file(tmp_path):
     p = tmp_path / "fast.toml"
     p.write_text(fast_protocol_text())
+    return p
+
+
+@pytest.fixture
+def lenient_rig(tmp_path):
+    """The simulated rig with the limits a behaviour test relaxes (tests/helpers.py)."""
+    p = tmp_path / "lenient-rig.toml"
+    p.write_text(lenient_rig_text())
     return p

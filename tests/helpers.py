@@ -20,6 +20,30 @@ def fast_protocol_text(loop_rate_hz: float = 200.0, run_in_s: float = 2.0, perio
     return text
 
 
+#: The safety limits a behaviour test relaxes (timing belongs to benchmarks/live_loop.py): a late
+#: cycle, a heartbeat gap or a late glove frame on a loaded or idle-halting machine must not end
+#: a trial before what the test looks at. Every one stays a real, checked limit.
+LENIENT_LIMITS = {
+    "loop_stall_s": "0.5",
+    "glove_timeout_s": "2.0",
+    "heartbeat_timeout_ms": "2000",
+    "max_missed_tpdo": "1000",
+    "host_heartbeat_timeout_ms": "100",  # the longest a rig file may set (docs/rig-config.md)
+}
+
+
+def lenient_rig_text(text: str | None = None, **limits: str) -> str:
+    """The shipped simulated rig (or ``text``) with :data:`LENIENT_LIMITS` (and ``limits``)."""
+    import re
+
+    if text is None:
+        text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
+    for key, value in (LENIENT_LIMITS | limits).items():
+        text, n = re.subn(rf"(?m)^{key} = \S+", f"{key} = {value}", text)
+        assert n == 1, f"rig text: {key} found {n} times"  # a stale edit fails loudly
+    return text
+
+
 def write_rig(tmp_path: Path, text: str) -> Path:
     """``text`` as ``tmp_path/rig.toml``."""
     p = tmp_path / "rig.toml"

@@ -20,21 +20,6 @@ from steerlab.protocols import events as ev
 from steerlab.protocols.datafile import SessionFile, SessionWriter
 from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.session import build_plan
-from tests.helpers import ROOT
-
-
-@pytest.fixture
-def lenient_rig(tmp_path):
-    # Late cycles from other tests' load must not end these trials before what is tested.
-    text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
-    text = re.sub(r"(?m)^loop_stall_s = \S+", "loop_stall_s = 0.5", text)
-    text = re.sub(r"(?m)^glove_timeout_s = \S+", "glove_timeout_s = 2.0", text)
-    text = re.sub(r"(?m)^heartbeat_timeout_ms = \S+", "heartbeat_timeout_ms = 2000", text)
-    text = re.sub(r"(?m)^max_missed_tpdo = \S+", "max_missed_tpdo = 1000", text)
-    text = re.sub(r"(?m)^host_heartbeat_timeout_ms = \S+", "host_heartbeat_timeout_ms = 100", text)
-    p = tmp_path / "rig.toml"
-    p.write_text(text)
-    return p
 
 
 def _engine(loop, protocol, path, trials=None):

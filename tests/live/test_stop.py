@@ -147,7 +147,9 @@ def _urgent() -> None:
         pass
 
 
-def test_steerlab_stop_by_subject_with_two_real_sessions(tmp_path, short_protocol_file):
+def test_steerlab_stop_by_subject_with_two_real_sessions(
+    tmp_path, short_protocol_file, lenient_rig
+):
     # trials of 18.5 s for S02; S01's of 101.5 s, so that S01 is still running when S02 has been
     # stopped, however slowly the commands in between start on a loaded machine
     long = tmp_path / "long.toml"
@@ -156,10 +158,7 @@ def test_steerlab_stop_by_subject_with_two_real_sessions(tmp_path, short_protoco
     longer.write_text(short_protocol_file.read_text().replace("periods = 1", "periods = 20"))
     protocols = {1: longer, 2: long}
     short_protocol_file = long
-    text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
-    rig = tmp_path / "rig.toml"
-    text = text.replace("host_heartbeat_timeout_ms = 80 ", "host_heartbeat_timeout_ms = 100 ")
-    rig.write_text(text.replace("loop_stall_s = 0.02 ", "loop_stall_s = 0.5 "))
+    rig = lenient_rig
     out = tmp_path / "sessions"
     runs = {
         n: _steerlab(

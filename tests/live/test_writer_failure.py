@@ -142,18 +142,6 @@ def test_session_file_removed_mid_trial(devices, short_protocol, tmp_path):
     assert loop.trial_stats()["samples"] == emitted + 50  # stopped at the refused block
 
 
-@pytest.fixture
-def lenient_rig(tmp_path):
-    text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
-    p = tmp_path / "rig.toml"
-    text = text.replace("host_heartbeat_timeout_ms = 80 ", "host_heartbeat_timeout_ms = 100 ")
-    text = text.replace("heartbeat_timeout_ms = 250 ", "heartbeat_timeout_ms = 2000 ")
-    text = text.replace("max_missed_tpdo = 20 ", "max_missed_tpdo = 500 ")
-    text = text.replace("glove_timeout_s = 0.25 ", "glove_timeout_s = 2.0 ")
-    p.write_text(text.replace("loop_stall_s = 0.02 ", "loop_stall_s = 0.5 "))
-    return p
-
-
 def test_writer_failure_stops_the_loop_process(lenient_rig, short_protocol, tmp_path):
     """The loop in its own process must not go on applying the perturbation (it did, for the
     rest of the trial) when the engine lets go of the trial; the samples it took meanwhile are

@@ -151,11 +151,11 @@ def _opens_everywhere(out: Path, tmp_path: Path, n_files: int = 1) -> list:
 
 
 @pytest.mark.parametrize("moment", ["familiarization", "measured", "break"])
-def test_kill_during_a_run_session(tmp_path, moment):
+def test_kill_during_a_run_session(tmp_path, moment, lenient_rig):
     proto = _protocol(tmp_path)
     out = tmp_path / "sessions"
     path = out / "S01.h5"
-    proc = _start("run", "--subject", 1, "--protocol", proto, "--out", out)
+    proc = _start("run", "--subject", 1, "--protocol", proto, "--out", out, "--rig", lenient_rig)
     key1, key2 = "01_RT_fam_a1", "02_RT_rep1_a1"
 
     def now():
@@ -190,7 +190,7 @@ def test_kill_during_a_run_session(tmp_path, moment):
     # --resume continues it; what was recorded stays bit for bit.
     if moment != "familiarization":
         r = steerlab("run", "--subject", 1, "--protocol", proto, "--out", out, "--resume",
-                     "--no-breaks")  # fmt: skip
+                     "--no-breaks", "--rig", lenient_rig)  # fmt: skip
         assert r.returncode == 0, r.stdout + r.stderr
         sf = SessionFile(path)
         att = sf.attempts()

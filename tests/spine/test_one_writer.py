@@ -31,13 +31,13 @@ def _first_trial_done(path) -> bool:
         return "complete" in [g.attrs["status"] for g in f["trials"].values()]
 
 
-def test_a_second_writer_is_refused_naming_the_first(tmp_path):
+def test_a_second_writer_is_refused_naming_the_first(tmp_path, lenient_rig):
     # Refused in the break, when the file is closed and only the lock says it is in use.
     proto = _protocol(tmp_path, fam=1, brk=120.0)
     out = tmp_path / "sessions"
     path = out / "S01.h5"
     sim = ("simulate", "--subjects", 1, "--protocol", proto, "--out", out)
-    run = ("run", "--subject", 1, "--protocol", proto, "--out", out)
+    run = ("run", "--subject", 1, "--protocol", proto, "--out", out, "--rig", lenient_rig)
     log = open(tmp_path / "first.log", "w")  # noqa: SIM115
     for _try in range(3):  # a loaded machine can stall the real-time loop, which aborts
         first = subprocess.Popen(
