@@ -13,11 +13,10 @@ What a lab does for hard guarantees, and what Steerlab does:
 - memory locked with ``mlockall`` (no page faults inside the loop): when permitted;
 - CPU idle states limited to the shallowest (a PM QoS request of 0 µs on
   ``/dev/cpu_dma_latency``, held while the process lives, as ``cyclictest`` does): when
-  permitted. An idle core otherwise sleeps in a state it leaves in tens to hundreds of µs, and in
-  a virtual machine a halted vCPU is woken through the hypervisor: each SYNC → TPDO round trip to
-  the drive then waits for one or two such wake-ups. Measured on the 2-core development VM at
-  load 1 (docs/benchmarks.md, live_loop): without it the default simulated rig aborted ("cycle
-  20–28 ms late", 7–32 % late cycles); with it the trial completed, p99 0.06 ms;
+  permitted. An idle core otherwise sleeps in a state it leaves in tens to hundreds of µs. The
+  request only acts through a cpuidle driver: where the kernel has none (``cpuidle_driver``
+  "none", as on the 2-core development VM) the CPUs halt when idle whatever is asked, and in a
+  virtual machine each wake-up goes through the hypervisor; the summary and a warning say so;
 - isolated cores (``isolcpus``, cpusets) and a PREEMPT_RT kernel: the lab's system
   administration, not something a program should do to its host.
 """
@@ -40,6 +39,9 @@ SWITCH_INTERVAL_S = 2e-4
 FIFO_PRIORITY = 20
 MCL_CURRENT, MCL_FUTURE = 1, 2
 CPU_DMA_LATENCY = "/dev/cpu_dma_latency"
+#: The kernel's CPU idle driver. "none": the CPUs idle by halting (x86 HLT), the only idle state,
+#: so no PM QoS request changes how they idle (seen on the 2-core development VM).
+CPUIDLE_DRIVER = "/sys/devices/system/cpu/cpuidle/current_driver"
 #: The open PM QoS request: the kernel keeps it while the file is open (this process's life).
 _dma_latency_fd: int | None = None
 
@@ -97,6 +99,9 @@ def tune_process(*, fifo: bool = True, lock_memory: bool = True) -> dict:
             applied["mlockall"] = f"unavailable ({e})"
     if fifo:
         applied["cpu_dma_latency_us"] = hold_shallow_idle()
+        driver = cpuidle_driver()
+        if driver is not None:
+            applied["cpuidle_driver"] = driver
     try:
         applied["cpus"] = sorted(os.sched_getaffinity(0))
     except (AttributeError, OSError):
@@ -123,6 +128,19 @@ def hold_shallow_idle() -> object:
     return 0
 
 
+def cpuidle_driver() -> str | None:
+    """The CPU idle driver the kernel uses ("none": halt only); None where Linux does not say."""
+    try:
+        with open(CPUIDLE_DRIVER) as f:
+            return f.read().strip()
+    except OSError:
+        return None
+
+
+def _halts_only(applied: dict) -> bool:
+    return applied.get("cpuidle_driver") == "none"
+
+
 def _fifo_for_other_threads() -> None:
     try:
         tids = [int(t) for t in os.listdir("/proc/self/task")]
@@ -147,7 +165,10 @@ def realtime_summary(applied: dict) -> str:
     idle = applied.get("cpu_dma_latency_us")
     if idle is None:
         return f"control loop: {prio}, {mem}, {where}"
-    shallow = "shallow CPU idle" if idle == 0 else f"deep CPU idle allowed ({idle})"
+    if _halts_only(applied):
+        shallow = "CPU idle: halt only (no cpuidle driver)"
+    else:
+        shallow = "shallow CPU idle" if idle == 0 else f"deep CPU idle allowed ({idle})"
     return f"control loop: {prio}, {mem}, {shallow}, {where}"
 
 
@@ -172,6 +193,13 @@ def realtime_warnings(applied: dict) -> list[str]:
             f"deep CPU idle states stay allowed ({CPU_DMA_LATENCY}: {idle}); waking an idle "
             "core can delay the drive's answers by a cycle (run as root, or disable deep "
             "C-states in the BIOS or with the kernel's idle settings)"
+        )
+    if _halts_only(applied):
+        out.append(
+            "this machine's CPUs idle by halting whatever Steerlab asks (cpuidle driver: none); "
+            "in a virtual machine every wake-up then goes through the hypervisor and the "
+            "drive's answers can come late: run sessions with people on a lab PC on bare metal "
+            "(docs/live-loop.md)"
         )
     cpus = applied.get("cpus")
     if cpus is not None and len(cpus) < 2:

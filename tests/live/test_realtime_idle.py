@@ -59,3 +59,34 @@ def test_a_refused_request_is_a_warning_and_in_the_summary():
     assert "deep CPU idle allowed" in realtime_summary(applied)
     assert "shallow CPU idle" in realtime_summary({**applied, "cpu_dma_latency_us": 0})
     assert realtime_warnings({**applied, "cpu_dma_latency_us": 0}) == []
+
+
+def test_a_machine_that_only_halts_is_named():
+    # No cpuidle driver: the PM QoS request is granted but changes nothing; the summary and a
+    # warning say so rather than "shallow CPU idle".
+    applied = {"sched_fifo_priority": 20, "mlockall": True, "cpu_dma_latency_us": 0,
+               "cpuidle_driver": "none", "cpus": [0, 1]}  # fmt: skip
+    assert "halt only" in realtime_summary(applied)
+    (warning,) = realtime_warnings(applied)
+    assert "cpuidle driver: none" in warning and "bare metal" in warning
+    assert realtime_warnings({**applied, "cpuidle_driver": "intel_idle"}) == []
+    assert "shallow CPU idle" in realtime_summary({**applied, "cpuidle_driver": "intel_idle"})
+
+
+def test_the_driver_reported_is_the_kernels():
+    # tune_process in a process of its own (it takes SCHED_FIFO), read against sysfs directly.
+    import json
+
+    from steerlab.hardware.realtime import CPUIDLE_DRIVER
+
+    code = (
+        "import json; from steerlab.hardware.realtime import tune_process;"
+        "print(json.dumps(tune_process(lock_memory=False)))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    applied = json.loads(out.stdout)
+    if os.path.exists(CPUIDLE_DRIVER):
+        with open(CPUIDLE_DRIVER) as f:
+            assert applied["cpuidle_driver"] == f.read().strip()
+    else:
+        assert "cpuidle_driver" not in applied
