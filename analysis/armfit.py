@@ -463,7 +463,8 @@ def _variance(
         if v is not None:
             v = np.asarray(v, dtype=float)[use]
             if np.all(np.isfinite(v) & (v > 0)):
-                c = getattr(estimate, "H_variance_log_cov", None) if name[-6:] == "smooth" else None
+                c = getattr(estimate, "H_variance_log_cov", None)
+                c = c if name == "H_variance_smooth" else None
                 if c is not None:
                     c = np.asarray(c, dtype=float)[np.ix_(use, use)]
                     c = c if np.all(np.isfinite(c)) else None
