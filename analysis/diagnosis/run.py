@@ -17,6 +17,7 @@ from steerlab.analysis.diagnosis.candidates import CANDIDATE_NAMES
 from steerlab.analysis.diagnosis.data import DiagnosisError, PreparedStudy, TrialData, prepare_study
 from steerlab.analysis.diagnosis.drift import DriftResult, TrialStiffness, analyse_drift
 from steerlab.analysis.diagnosis.engine import (
+    CANDIDATE_TIME_LIMIT_S,
     Selection,
     Setup,
     _limit_threads,
@@ -213,6 +214,10 @@ def _run(
     signal_names = [n for n in names if n != "drift"]
     sel = select(setup, signal_names, jobs=max(1, jobs or 1))
     timing["candidates"] = time.perf_counter() - t1
+    for what in sel.undone:
+        prep.limits.append(
+            f"time limit of the candidate stage ({CANDIDATE_TIME_LIMIT_S:g} s) reached: {what}"
+        )
 
     stages.next("drift")
     t1 = time.perf_counter()
