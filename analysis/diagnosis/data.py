@@ -323,8 +323,13 @@ def _perturbation_present(rec: TrialRecord) -> bool:
     return tp.size > 0 and float(np.std(tp)) > 1e-3
 
 
-def prepare_study(records: Sequence[TrialRecord]) -> PreparedStudy:
-    """Select and prepare the trials; raise :class:`DiagnosisError` when nothing is usable."""
+def prepare_study(
+    records: Sequence[TrialRecord], inertia_kgm2: float | None = None
+) -> PreparedStudy:
+    """Select and prepare the trials; raise :class:`DiagnosisError` when nothing is usable.
+
+    ``inertia_kgm2``: hold every subject's arm inertia at this value instead of fitting it from
+    the data (see :func:`_cell_fits`)."""
     if not records:
         raise DiagnosisError("no trials in the data")
     skipped: list[tuple[str, str]] = []
@@ -383,7 +388,9 @@ def prepare_study(records: Sequence[TrialRecord]) -> PreparedStudy:
             f"trials recorded at several rates ({sorted(fs)} Hz); each is simulated at its own"
         )
     trials.sort(key=lambda t: (t.subject, t.trial_index or 0, t.condition, t.repetition))
-    _cell_fits(trials, fam)
+    _cell_fits(trials, fam, inertia_kgm2)
+    if inertia_kgm2 is not None:
+        notes.append(f"arm inertia held at {inertia_kgm2:g} kg·m² (not fitted from the data)")
     fam.sort(key=lambda t: (t.subject, t.trial_index or 0))
     _check_rig(trials)
     prep = PreparedStudy(trials, fam, skipped, notes, limits)
@@ -411,14 +418,22 @@ def with_inertia(arm: ArmParams, trial: TrialData) -> ArmParams:
     return arm
 
 
-def _cell_fits(trials: Sequence[TrialData], fam: Sequence[TrialData] = ()) -> None:
+def _cell_fits(
+    trials: Sequence[TrialData],
+    fam: Sequence[TrialData] = (),
+    inertia_kgm2: float | None = None,
+) -> None:
     """The FRF fits that start the baseline, with the report's default estimator.
 
     Per subject, one joint fit of all its subject × condition responses (all repetitions of a
     condition pooled) with one I_i shared by the conditions; then each trial alone (measured and
     familiarization) with that I_i held. A subject whose joint fit fails keeps each cell's own
     fit (I_i free), and failing that the fallback arm; the trial's I_i is then the cell's.
+    With ``inertia_kgm2`` every subject's I_i is held at that value instead.
     """
+    options = DIAGNOSIS_FIT
+    if inertia_kgm2 is not None:
+        options = replace(DIAGNOSIS_FIT, inertia="fixed", I_i=float(inertia_kgm2))
     by_subject: dict[str, dict[str, list[TrialData]]] = {}
     for t in trials:
         by_subject.setdefault(t.subject, {}).setdefault(t.condition, []).append(t)
@@ -426,20 +441,20 @@ def _cell_fits(trials: Sequence[TrialData], fam: Sequence[TrialData] = ()) -> No
         conds = list(cells)
         ests = [frequency_response([t.spectra for t in cells[c]]) for c in conds]
         try:
-            joint = fit_arm_joint(ests, DIAGNOSIS_FIT, labels=conds)
+            joint = fit_arm_joint(ests, options, labels=conds)
             I_i, I_sem = float(joint.I_i), joint.I_i_sem
             cell_arm = {c: ArmParams(**f.params.as_dict()) for c, f in joint.by_label().items()}
         except (ValueError, np.linalg.LinAlgError):
             I_i, I_sem, cell_arm = float("nan"), None, {}
             for c, est in zip(conds, ests, strict=True):
                 try:
-                    cell_arm[c] = ArmParams(**fit_arm(est, DIAGNOSIS_FIT).params.as_dict())
+                    cell_arm[c] = ArmParams(**fit_arm(est, options).params.as_dict())
                 except (ValueError, np.linalg.LinAlgError):
                     continue
         if not (math.isfinite(I_i) and I_i > 0):
             vals = [a.I_i for a in cell_arm.values()]
             I_i = float(np.exp(np.mean(np.log(vals)))) if vals else FALLBACK_ARM.I_i
-        held = replace(DIAGNOSIS_FIT, inertia="fixed", I_i=I_i)
+        held = replace(options, inertia="fixed", I_i=I_i)
         subject_trials = [t for c in conds for t in cells[c]]
         subject_trials += [t for t in fam if t.subject == subject]
         for t in subject_trials:
@@ -455,9 +470,7 @@ def _cell_fits(trials: Sequence[TrialData], fam: Sequence[TrialData] = ()) -> No
         if math.isfinite(t.I_i):
             continue
         try:
-            t.arm0 = ArmParams(
-                **fit_arm(frequency_response(t.spectra), DIAGNOSIS_FIT).params.as_dict()
-            )
+            t.arm0 = ArmParams(**fit_arm(frequency_response(t.spectra), options).params.as_dict())
             t.I_i = t.arm0.I_i
         except (ValueError, np.linalg.LinAlgError):
             t.I_i = FALLBACK_ARM.I_i

@@ -168,12 +168,14 @@ def run_diagnosis(
     progress: ProgressCallback | None = None,
     model: str | Path | None = None,
     candidates: tuple[str, ...] | None = None,
+    inertia_kgm2: float | None = None,
 ) -> DiagnosisResult:
     """Diagnose the session files in ``directory``; write diagnosis.json, index.html and
     model.toml into ``out`` (unless None). ``model``: a model file whose mechanisms become the
-    baseline (see docs/diagnosis.md: "diagnosing the extended model")."""
+    baseline (see docs/diagnosis.md: "diagnosing the extended model"). ``inertia_kgm2``: hold
+    the arm inertia at this value (default: one per subject, fitted from the data)."""
     with _limit_threads():
-        return _run(directory, out, jobs, progress, model, candidates)
+        return _run(directory, out, jobs, progress, model, candidates, inertia_kgm2)
 
 
 def _run(
@@ -183,13 +185,14 @@ def _run(
     progress: ProgressCallback | None,
     model: str | Path | None,
     candidates: tuple[str, ...] | None,
+    inertia_kgm2: float | None = None,
 ) -> DiagnosisResult:
     t0 = time.perf_counter()
     timing: dict[str, float] = {}
     stages = _Stages(progress)
     stages("load")
     records = load_study(directory)
-    prep = prepare_study(records)
+    prep = prepare_study(records, inertia_kgm2)
     base_mech = Mechanisms()
     model_baseline = None
     base_drift = 0.0
@@ -216,7 +219,8 @@ def _run(
     timing["candidates"] = time.perf_counter() - t1
     for what in sel.undone:
         prep.limits.append(
-            f"time limit of the candidate stage ({CANDIDATE_TIME_LIMIT_S:g} s) reached: {what}"
+            f"time limit of the candidate stage ({CANDIDATE_TIME_LIMIT_S:g} s; CPU time with "
+            f"one job) reached: {what}"
         )
 
     stages.next("drift")
