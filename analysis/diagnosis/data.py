@@ -106,7 +106,7 @@ class TrialData:
     remnant: list[np.ndarray] = field(default_factory=list)
     # Undo the model's torque-reading delay in the wheel-equation channel (final fit only).
     undo_reading_delay: bool = False
-    # The subject's arm inertia from the data (:func:`fit_inertia`), NaN until fitted; every
+    # The subject's arm inertia from the data (:func:`_cell_fits`), NaN until fitted; every
     # arm the diagnosis simulates for this trial carries it.
     I_i: float = float("nan")
     I_i_sem: float | None = None

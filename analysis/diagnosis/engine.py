@@ -35,6 +35,7 @@ Drift is judged separately, on the per-trial arm parameters (:mod:`analysis.diag
 from __future__ import annotations
 
 import concurrent.futures as cf
+import math
 import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
@@ -434,15 +435,19 @@ def select(
     names: Sequence[str] | None = None,
     jobs: int = 1,
     progress: Progress | None = None,
-    time_limit_s: float | None = CANDIDATE_TIME_LIMIT_S,
+    time_limit_s: float | None = None,
 ) -> Selection:
+    """Greedy forward selection (module docstring). ``time_limit_s``: the candidate stage's
+    limit (default :data:`CANDIDATE_TIME_LIMIT_S`, read at call time; ``math.inf``: none)."""
     pool = [c.name for c in CANDIDATES] if names is None else list(names)
+    if time_limit_s is None:
+        time_limit_s = CANDIDATE_TIME_LIMIT_S
     clock = time.process_time if jobs <= 1 else time.monotonic
-    deadline = None if time_limit_s is None else clock() + time_limit_s
+    deadline = clock() + time_limit_s
     undone: list[str] = []
 
     def late() -> bool:
-        return deadline is not None and clock() > deadline
+        return clock() > deadline
 
     current = make_current(setup, setup.spec(), setup.base)
     steps: list[list[CandidateResult]] = []
@@ -473,7 +478,7 @@ def select(
             results: list[CandidateResult] = []
             if executor is not None:
                 futs = {executor.submit(_worker_eval, current, n, step): n for n in remaining}
-                wait = None if deadline is None else max(deadline - clock(), 0.0)
+                wait = max(deadline - clock(), 0.0) if math.isfinite(deadline) else None
                 done, pending = cf.wait(futs, timeout=wait)
                 results = [f.result() for f in futs if f in done]
                 if pending:

@@ -13,11 +13,11 @@ from typing import Any
 import numpy as np
 
 from steerlab.analysis.diagnosis import compare as C
+from steerlab.analysis.diagnosis import engine
 from steerlab.analysis.diagnosis.candidates import CANDIDATE_NAMES
 from steerlab.analysis.diagnosis.data import DiagnosisError, PreparedStudy, TrialData, prepare_study
 from steerlab.analysis.diagnosis.drift import DriftResult, TrialStiffness, analyse_drift
 from steerlab.analysis.diagnosis.engine import (
-    CANDIDATE_TIME_LIMIT_S,
     Selection,
     Setup,
     _limit_threads,
@@ -219,8 +219,8 @@ def _run(
     timing["candidates"] = time.perf_counter() - t1
     for what in sel.undone:
         prep.limits.append(
-            f"time limit of the candidate stage ({CANDIDATE_TIME_LIMIT_S:g} s; CPU time with "
-            f"one job) reached: {what}"
+            f"time limit of the candidate stage ({engine.CANDIDATE_TIME_LIMIT_S:g} s; CPU "
+            f"time with one job) reached: {what}"
         )
 
     stages.next("drift")

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from steerlab.analysis.diagnosis import run_diagnosis
+from steerlab.analysis.diagnosis import engine, run_diagnosis
 from steerlab.benchmarks.otherworld import generate_study, mechanism
 from steerlab.protocols.interchange import import_study
 
@@ -41,6 +41,14 @@ def test_null_study_of_another_world_is_explained_by_the_fitted_baseline(tmp_pat
     # The arm inertia came from the data (the world's is 0.07 kg·m²), not Steerlab's 0.1.
     inertia = {a["I_i"] for a in res.data["arms"].values()}
     assert len(inertia) == 1 and 0.055 < inertia.pop() < 0.085
+
+
+def test_a_stage_out_of_time_says_what_it_left_undone(tmp_path, monkeypatch):
+    monkeypatch.setattr(engine, "CANDIDATE_TIME_LIMIT_S", 0.0)
+    res = run_diagnosis(otherworld_study(tmp_path, [], seed=3), None)
+    assert res.cause == "none"
+    undone = [lim for lim in res.limits if "time limit of the candidate stage" in lim]
+    assert len(undone) == 1 and "reflex_delay" in undone[0] and "not tried" in undone[0]
 
 
 @pytest.mark.parametrize(
