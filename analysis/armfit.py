@@ -36,6 +36,10 @@ Standard errors
     with the Monte-Carlo spread (tests/analysis). v_k comes from the unexcited bins for one
     subject (:attr:`analysis.frf.FrequencyResponse.H_variance`) and from the spread between
     subjects for a group mean (:attr:`analysis.frf.GroupFrequencyResponse.H_variance`).
+    With the default (inverse-variance) weights, which are themselves estimates, a second-order
+    term for their scatter is added (:func:`_estimated_weights_term`, docs/method-estimator.md
+    §1; ``FitOptions.weight_uncertainty``), and the fit compares the model with the compensated
+    estimate ``H_compensated`` where the response has one (analysis/frf.py).
     ``sem_method`` says which was used ("noise", or "residual" when no variance is available);
     both versions are kept (``sems_noise``, ``sems_residual``). Neither includes the model's
     lack of fit, which shows in FIT% instead.
@@ -177,6 +181,9 @@ class FitOptions:
     # :func:`sampled_admittance`). "ideal": with H itself (continuous-time recording).
     sampling: str = "zoh"
     wheel_inertia: float = DEFAULT_WHEEL_INERTIA_KGM2
+    # Standard errors that account for the maximum-likelihood weights being estimates (the
+    # smoothed noise model's scatter, docs/method-estimator.md §1); False: the plug-in bound.
+    weight_uncertainty: bool = True
 
     def __post_init__(self) -> None:
         if self.sampling not in SAMPLINGS:
@@ -205,6 +212,7 @@ class FitOptions:
             "band_mixing": self.band_mixing,
             "sampling": self.sampling,
             "wheel_inertia_kgm2": self.wheel_inertia,
+            "weight_uncertainty": self.weight_uncertainty,
         }
 
 
@@ -427,6 +435,9 @@ class _Problem:
     var: np.ndarray | None  # variance of Ĥ per band (smoothed where available), for the SEMs
     fs_hz: float | None = None  # set: compare with the sampled-data response (zoh)
     wheel_inertia: float = DEFAULT_WHEEL_INERTIA_KGM2
+    # Covariance of log(var) between the bands used, when var is an estimate with a known
+    # scatter (the smoothed noise model): see _estimated_weights_term.
+    var_log_cov: np.ndarray | None = None
 
     def model(self, p: Mapping[str, float | np.ndarray]) -> np.ndarray:
         if self.fs_hz is None:
@@ -442,19 +453,33 @@ class _Problem:
         return np.array([np.sum(self.mix * x, axis=-1) for x in d]).T
 
 
-def _variance(estimate: AdmittanceEstimate, use: np.ndarray) -> np.ndarray | None:
+def _variance(
+    estimate: AdmittanceEstimate, use: np.ndarray
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The variance of Ĥ at the bands ``use`` (smoothed where available) and, for the smoothed
+    one, the covariance of its log between those bands (None when unknown)."""
     for name in ("H_variance_smooth", "H_variance"):
         v = getattr(estimate, name, None)
         if v is not None:
             v = np.asarray(v, dtype=float)[use]
             if np.all(np.isfinite(v) & (v > 0)):
-                return v
-    return None
+                c = getattr(estimate, "H_variance_log_cov", None)
+                c = c if name == "H_variance_smooth" else None
+                if c is not None:
+                    c = np.asarray(c, dtype=float)[np.ix_(use, use)]
+                    c = c if np.all(np.isfinite(c)) else None
+                return v, c
+    return None, None
 
 
 def _prepare(estimate: AdmittanceEstimate, opt: FitOptions, n_own: int) -> _Problem:
     f_all = np.asarray(estimate.frequencies_hz, dtype=float)
     H_all = np.asarray(estimate.H, dtype=complex)
+    H_comp = getattr(estimate, "H_compensated", None)
+    if opt.weighting == "inverse_variance" and H_comp is not None:
+        # Weights that grow with |S_TpTd|² would pull Ĥ's remnant-correlated error into the
+        # estimate; the compensated Ĥ has none (analysis/frf.py, docs/method-estimator.md §1).
+        H_all = np.asarray(H_comp, dtype=complex)
     coh_all = np.asarray(estimate.coherence, dtype=float)
     ok = np.isfinite(H_all) & np.isfinite(coh_all) & (f_all > 0)
     use = np.nonzero(ok)[0][np.argsort(f_all[ok], kind="stable")][opt.n_exclude_low :]
@@ -472,7 +497,7 @@ def _prepare(estimate: AdmittanceEstimate, opt: FitOptions, n_own: int) -> _Prob
     else:
         s_bins = 2j * np.pi * f[:, None]
         mix = np.ones((len(f), 1), dtype=complex)
-    var = _variance(estimate, use)
+    var, var_log_cov = _variance(estimate, use)
     if opt.weighting == "inverse_variance":
         if var is None:
             raise ValueError(
@@ -489,7 +514,7 @@ def _prepare(estimate: AdmittanceEstimate, opt: FitOptions, n_own: int) -> _Prob
         # Each response counts alike in a joint fit: weights relative to its own size.
         w = w / np.sum(w * np.abs(H) ** 2)
     fs = getattr(estimate, "fs_hz", None) if opt.sampling == "zoh" else None
-    return _Problem(f, H, s_bins, mix, w, var, fs, opt.wheel_inertia)
+    return _Problem(f, H, s_bins, mix, w, var, fs, opt.wheel_inertia, var_log_cov)
 
 
 # The inertia profile only chooses the joint refinement's start (which then converges to
@@ -737,6 +762,13 @@ def fit_arm_joint(
         S = np.concatenate([v_all, v_all]) / 2.0  # complex error: half the variance in each part
         cov = cov_noise = A_inv @ (J.T @ ((W**2 * S)[:, None] * J)) @ A_inv
         method = "noise"
+        logcovs = [pr.var_log_cov for pr in probs]
+        if (
+            opt.weighting == "inverse_variance"
+            and opt.weight_uncertainty
+            and all(c is not None for c in logcovs)
+        ):
+            cov = cov_noise = cov + _estimated_weights_term(Jc, v_all, _block_diag(logcovs))
     else:
         cov, cov_noise, method = cov_res, None, "residual"
 
@@ -795,6 +827,49 @@ def fit_arm_joint(
         tuple(profile_I),
         tuple(profile_cost),
     )
+
+
+def _block_diag(blocks: Sequence[np.ndarray | None]) -> np.ndarray:
+    n = sum(len(b) for b in blocks if b is not None)
+    out = np.zeros((n, n))
+    i = 0
+    for b in blocks:
+        assert b is not None
+        out[i : i + len(b), i : i + len(b)] = b
+        i += len(b)
+    return out
+
+
+def _estimated_weights_term(Jc: np.ndarray, var: np.ndarray, log_cov: np.ndarray) -> np.ndarray:
+    """What the maximum-likelihood fit's covariance gains because its weights 1/v̂_k are
+    estimates, to second order in their error (docs/method-estimator.md §1).
+
+    With v̂_k = v_k e^{η_k}, η normal with mean 0 and covariance ``log_cov`` (the smoothed
+    noise model's own scatter), the weights are W(1 + δ), δ_k = e^{−η_k} − 1. Expanding the
+    weighted least-squares estimate in δ, with F_k the Fisher information of band k and F their
+    sum, the estimator's covariance is F⁻¹ + F⁻¹[Σ E(δ_k²) F_k − Σ E(δ_k δ_l) F_k F⁻¹ F_l] F⁻¹
+    (random weights cost efficiency; nothing when δ is the same for every band), while the
+    plug-in bound (Σ F_k (1 + δ_k))⁻¹ that the fit reports has the mean
+    F⁻¹ − F⁻¹[Σ E(δ_k) F_k − Σ E(δ_k δ_l) F_k F⁻¹ F_l] F⁻¹ (1/v̂ is larger than 1/v on
+    average). Their difference, with the plug-in F_k, is returned. For independent variance
+    estimates of M − 1 complex degrees of freedom it is the (M − 1)/(M − 3) of Pintelon &
+    Schoukens' sample maximum-likelihood estimator to first order in 1/M.
+    """
+    # Each band's complex error has var/2 in its real and in its imaginary part.
+    Fk = 2.0 * np.real(np.einsum("ki,kj->kij", Jc.conj(), Jc)) / var[:, None, None]
+    F = Fk.sum(axis=0)
+    try:
+        G = np.linalg.inv(F)
+    except np.linalg.LinAlgError:
+        return np.zeros(F.shape)
+    c = np.diag(log_cov)
+    e_half = np.exp(c / 2)
+    mean_d = e_half - 1.0
+    # Lognormal moments: E[δ_k δ_l] = e^{(c_k + c_l)/2 + C_kl} − e^{c_k/2} − e^{c_l/2} + 1.
+    second = np.outer(e_half, e_half) * np.exp(log_cov) - e_half[:, None] - e_half[None, :] + 1
+    pair = np.einsum("kij,kjm->im", Fk @ G, np.tensordot(second, Fk, axes=1))
+    middle = np.tensordot(np.diag(second) + mean_d, Fk, axes=1) - 2.0 * pair
+    return G @ middle @ G
 
 
 def simulate_angle(

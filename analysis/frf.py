@@ -40,6 +40,16 @@ Noise
     measured at the noise bins as θ − Ĥ_band·Td, so
         var(Ĥ) ≈ mean|e|² · Σ|Tp|² / |Σ conj(Tp)·Td|²        (first order in the noise)
 
+Remnant in Td (errors in variables)
+    The remnant drives Td as well as θ, so S_TpTd carries noise (a share
+    r = Σ|Tp|²·E|Td_noise|²/|S_TpTd|² of its power) correlated with Ĥ's error (ρ ≈ 1: one
+    source behind both). A fit whose weights grow with |S_TpTd|² pulls that error in:
+    E[|S_TpTd|²(Ĥ − H)] = Σ|Tp|²·E[e·conj(Td_noise)]. ``H_compensated`` removes it with the
+    noise bins' cross-spectrum, Ĥ − Σ|Tp|²·mean(e·conj(Td))/q, and ``H_variance_smooth`` uses
+    q = |S_TpTd|² − Σ|Tp|²·mean|Td|² (unbiased for the noise-free |E S_TpTd|²) in place of
+    |S_TpTd|²; bands whose noise share exceeds one half are left as they are. ``H`` stays the
+    paper's plain ratio (docs/method-estimator.md §1).
+
 Smoothed noise model
     Each band's noise power rests on a few unexcited bins (``noise_bins_per_side`` × 2 per
     period and repetition), so it scatters by ±30 % or more from band to band; weights made of
@@ -47,9 +57,10 @@ Smoothed noise model
     of frequency, so :func:`smooth_log_spectrum` fits log power as a local-linear function of
     log frequency (Gaussian kernel, :data:`DEFAULT_SMOOTHING_DECADES` wide) and corrects the
     log-χ² bias. ``H_variance_smooth`` is that smoothed noise power times the band's excitation
-    factor Σ|Tp|²/|Σ conj(Tp)·Td|² (which is measured at the excited bins and barely noisy).
-    It is what the default (inverse-variance, maximum-likelihood) fit weights with, and what
-    every fit's standard errors use (docs/method-estimator.md).
+    factor Σ|Tp|²/q (above). It is what the default (inverse-variance, maximum-likelihood) fit
+    weights with, and what every fit's standard errors use; ``H_variance_log_cov`` is how
+    uncertain its log is (the smoother's χ² scatter, :func:`smoothed_log_covariance`, plus
+    2r for q), which those standard errors account for (docs/method-estimator.md).
 
 Group level
     See :func:`group_frequency_response`.
@@ -82,6 +93,9 @@ DEFAULT_SMOOTHING_DECADES = 0.10
 # arm's resonance (2–5 Hz), which a local line over the same width flattens (docs/
 # method-estimator.md: the linear smoother put the noise there 2–4 × too low in PT).
 DEFAULT_SMOOTHING_DEGREE = 2
+# Compensate Ĥ for the remnant's share of S_TpTd only where that share is under half of
+# |S_TpTd|²: beyond, the band is noise-dominated and the first-order correction means nothing.
+COMPENSATE_ABOVE = 0.5
 
 
 def smooth_log_spectrum(
@@ -104,13 +118,34 @@ def smooth_log_spectrum(
     f = np.asarray(f_hz, dtype=float)
     v = np.asarray(power, dtype=float)
     nu = np.broadcast_to(np.asarray(dof, dtype=float), v.shape)
-    ok = np.isfinite(v) & (v > 0) & np.isfinite(f) & (f > 0) & (nu > 0)
+    ok = _smoothable(f, v, nu)
     out = np.full(v.shape, np.nan)
     if not np.any(ok):
         return out
-    x = np.log10(f)
     y = np.log(v[ok]) - (special.digamma(nu[ok] / 2) - np.log(nu[ok] / 2))
+    return np.exp(smoothing_matrix(f, nu, ok, decades, degree) @ y)
+
+
+def _smoothable(f: np.ndarray, v: np.ndarray, nu: np.ndarray) -> np.ndarray:
+    return np.isfinite(v) & (v > 0) & np.isfinite(f) & (f > 0) & (nu > 0)
+
+
+def smoothing_matrix(
+    f_hz: np.ndarray,
+    dof: np.ndarray,
+    ok: np.ndarray,
+    decades: float = DEFAULT_SMOOTHING_DECADES,
+    degree: int = DEFAULT_SMOOTHING_DEGREE,
+) -> np.ndarray:
+    """The linear map of :func:`smooth_log_spectrum`: smoothed log power = L @ (bias-corrected
+    log power at the ``ok`` frequencies). ``(len(f_hz), ok.sum())``; rows of NaN where f is not
+    a positive, finite frequency. Being linear, it also gives the smoothed values' covariance
+    (:func:`smoothed_log_covariance`)."""
+    f = np.asarray(f_hz, dtype=float)
+    nu = np.broadcast_to(np.asarray(dof, dtype=float), f.shape)
+    x = np.log10(np.where(f > 0, f, np.nan))
     xo, no = x[ok], nu[ok]
+    L = np.full((len(f), len(xo)), np.nan)
     for j in range(len(f)):
         if not (np.isfinite(f[j]) and f[j] > 0):
             continue
@@ -118,13 +153,34 @@ def smooth_log_spectrum(
         n_eff = int(np.count_nonzero(w > 1e-3 * w.max()))
         deg = min(degree, n_eff - 2)
         if deg < 1:
-            out[j] = float(np.sum(w * y) / np.sum(w))
+            L[j] = w / np.sum(w)
             continue
         sw = np.sqrt(w)
         A = np.vander(xo - x[j], deg + 1)  # the constant term, last, is the value at x[j]
-        coef = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)[0]
-        out[j] = float(coef[-1])
-    return np.exp(out)
+        L[j] = np.linalg.pinv(A * sw[:, None])[-1] * sw
+    return L
+
+
+def smoothed_log_covariance(
+    f_hz: np.ndarray,
+    power: np.ndarray,
+    dof: np.ndarray | float,
+    decades: float = DEFAULT_SMOOTHING_DECADES,
+    degree: int = DEFAULT_SMOOTHING_DEGREE,
+) -> np.ndarray:
+    """Covariance of log(:func:`smooth_log_spectrum`) between frequencies, from the raw
+    values' χ² scatter: L diag(ψ'(ν/2)) Lᵀ (the log of a mean of ν/2 squared complex-normal
+    magnitudes has variance ψ'(ν/2); different bands' values are independent). This is how
+    uncertain a weight made from the smoothed spectrum is, which the arm fit's standard errors
+    account for (docs/method-estimator.md)."""
+    f = np.asarray(f_hz, dtype=float)
+    v = np.asarray(power, dtype=float)
+    nu = np.broadcast_to(np.asarray(dof, dtype=float), v.shape)
+    ok = _smoothable(f, v, nu)
+    if not np.any(ok):
+        return np.full((len(f), len(f)), np.nan)
+    L = smoothing_matrix(f, nu, ok, decades, degree)
+    return (L * special.polygamma(1, nu[ok] / 2)) @ L.T
 
 
 def drift_removed(x: np.ndarray, selection: PeriodSelection) -> np.ndarray:
@@ -261,6 +317,12 @@ class FrequencyResponse:
     H_variance_smooth: np.ndarray | None = None
     noise_dof: np.ndarray | None = None  # real degrees of freedom of each band's noise power
     fs_hz: float | None = None  # the recording's sample rate (None if the trials differ)
+    # Covariance of log H_variance_smooth between bands (smoothed_log_covariance): the weights
+    # made from it are estimates, which the fit's standard errors account for.
+    H_variance_log_cov: np.ndarray | None = None
+    # Ĥ with the remnant's share of S_TpTd removed (module docstring), what the
+    # maximum-likelihood fit compares the model with; None only for hand-built responses.
+    H_compensated: np.ndarray | None = None
 
     @property
     def magnitude(self) -> np.ndarray:
@@ -328,18 +390,33 @@ def frequency_response(spectra: TrialSpectra | Sequence[TrialSpectra]) -> Freque
     noise_th = np.empty(nb)
     noise_td = np.empty(nb)
     resid = np.empty(nb)
+    cross = np.full(nb, np.nan, dtype=complex)  # mean e·conj(Td) at the noise bins
     dof = np.zeros(nb)
     for j in range(nb):
         nth = np.concatenate([s.noise_theta[:, s.noise_index_of_band[j]] for s in items])
         ntd = np.concatenate([s.noise_td[:, s.noise_index_of_band[j]] for s in items])
         noise_th[j] = np.mean(np.abs(nth) ** 2) if nth.size else np.nan
         noise_td[j] = np.mean(np.abs(ntd) ** 2) if ntd.size else np.nan
-        resid[j] = np.mean(np.abs(nth - H[j] * ntd) ** 2) if nth.size else np.nan
+        e = nth - H[j] * ntd
+        resid[j] = np.mean(np.abs(e) ** 2) if nth.size else np.nan
+        if nth.size:
+            cross[j] = np.mean(e * np.conj(ntd))
         dof[j] = 2 * nth.size
     with np.errstate(divide="ignore", invalid="ignore"):
         excitation_factor = s_tp_tp / np.abs(s_tp_td) ** 2
         H_var = resid * excitation_factor
-        H_var_smooth = smooth_log_spectrum(exc.band_frequencies_hz, resid, dof) * excitation_factor
+        # The remnant drives both θ and Td, so S_TpTd's noise is correlated with Ĥ's error, and
+        # |S_TpTd|² over-states the excitation by the noise's share (module docstring).
+        q = np.abs(s_tp_td) ** 2 - s_tp_tp * noise_td
+        usable = np.isfinite(q) & (q > COMPENSATE_ABOVE * np.abs(s_tp_td) ** 2)
+        q = np.where(usable, q, np.abs(s_tp_td) ** 2)
+        H_comp = np.where(usable & np.isfinite(cross), H - s_tp_tp * cross / q, H)
+        r = s_tp_tp * noise_td / q  # relative noise variance of S_TpTd
+        H_var_smooth = smooth_log_spectrum(exc.band_frequencies_hz, resid, dof) * s_tp_tp / q
+    log_cov = smoothed_log_covariance(exc.band_frequencies_hz, resid, dof)
+    # log q scatters by 2r (|1 + x|² with x complex normal of variance r), independently of
+    # the noise bins: the other half of the weights' own uncertainty.
+    log_cov = log_cov + np.diag(np.where(np.isfinite(r), 2.0 * r, 0.0))
     # θ_b = H(f_b)·Td_b at each bin, so Ĥ = Σ_b H(f_b)·c_b / Σ_b c_b with c_b = Σ conj(Tp)·Td.
     width = max(np.count_nonzero(band == j) for j in range(nb))
     bin_f = np.repeat(exc.band_frequencies_hz[:, None], width, axis=1)
@@ -368,6 +445,8 @@ def frequency_response(spectra: TrialSpectra | Sequence[TrialSpectra]) -> Freque
         H_variance_smooth=H_var_smooth,
         noise_dof=dof,
         fs_hz=_common_rate([s.selection.fs_hz for s in items]),
+        H_variance_log_cov=log_cov,
+        H_compensated=H_comp,
     )
 
 
@@ -419,6 +498,7 @@ class GroupFrequencyResponse:
     # with one subject, that subject's own smoothed noise variance.
     H_variance_smooth: np.ndarray | None = None
     fs_hz: float | None = None  # the subjects' common sample rate (None if they differ)
+    H_variance_log_cov: np.ndarray | None = None  # as in FrequencyResponse
 
     @property
     def magnitude(self) -> np.ndarray:
@@ -509,4 +589,9 @@ def group_frequency_response(
             else f0.H_variance_smooth
         ),
         fs_hz=_common_rate([r.fs_hz for r in responses]),
+        H_variance_log_cov=(
+            smoothed_log_covariance(f0.frequencies_hz, H_var, 2.0 * (n - 1))
+            if n > 1
+            else f0.H_variance_log_cov
+        ),
     )

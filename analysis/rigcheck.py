@@ -42,6 +42,7 @@ import math
 import os
 import tempfile
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -933,20 +934,65 @@ def load_rig_model(path: str | Path) -> dict:
         raise RigCheckError(f"{p}: cannot read ({e.strerror})") from None
     except json.JSONDecodeError as e:
         raise RigCheckError(f"{p}: not valid JSON ({e})") from None
+    return checked_rig_model(d, str(p))
+
+
+def checked_rig_model(d: Any, where: str) -> dict:
+    """``d`` (a rig.json's content, or a session file's record of one) with its values checked,
+    and ``_path`` set to ``where``; :class:`RigCheckError` names ``where`` and the key."""
     if not isinstance(d, dict):
-        raise RigCheckError(f"{p}: not a rig-check result (expected an object)")
+        raise RigCheckError(f"{where}: not a rig-check result (expected an object)")
     for key in PARAMS:
         v = d.get(key)
-        if not isinstance(v, dict) or not isinstance(v.get("value"), int | float):
-            raise RigCheckError(f"{p}: {key}: missing, or without a numeric 'value'")
+        if not isinstance(v, dict) or not _is_number(v.get("value")):
+            raise RigCheckError(f"{where}: {key}: missing, or without a numeric 'value'")
         if not math.isfinite(v["value"]):
-            raise RigCheckError(f"{p}: {key}.value: not finite")
+            raise RigCheckError(f"{where}: {key}.value: not finite")
     if d["inertia_kgm2"]["value"] <= 0:
-        raise RigCheckError(f"{p}: inertia_kgm2.value: must be > 0")
+        raise RigCheckError(f"{where}: inertia_kgm2.value: must be > 0")
     if d["delay_s"]["value"] < 0:
-        raise RigCheckError(f"{p}: delay_s.value: must be ≥ 0")
-    d["_path"] = str(p)
-    return d
+        raise RigCheckError(f"{where}: delay_s.value: must be ≥ 0")
+    model = d.get("model")
+    if model is not None and not isinstance(model, dict):
+        raise RigCheckError(f"{where}: model: expected an object")
+    eps = (model or {}).get("friction_eps_rad_s", EPS_RAD_S)
+    # measured_world divides by it: a bad value would fail later, far from the file.
+    if not _is_number(eps) or not math.isfinite(eps) or eps <= 0:
+        raise RigCheckError(f"{where}: model.friction_eps_rad_s: must be a number > 0")
+    return {**d, "_path": where}
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def recorded_rig_model(attrs: Mapping[str, Any], where: str) -> dict | None:
+    """The measured wheel a session file records, as a checked rig model: its ``wheel_used``
+    when that is "measured" (``simulate --rig-model``), else its ``rig_check`` (``run
+    --rig-check``); None when it records neither, or a nominal wheel. ``_path`` is the rig.json
+    the record names (it need not exist any more: the values are in the record),
+    ``_recorded_in`` is ``where``."""
+    for key in ("wheel_used", "rig_check"):
+        raw = attrs.get(key)
+        if raw is None:
+            continue
+        try:
+            d = raw if isinstance(raw, dict) else json.loads(raw)
+        except (TypeError, ValueError):
+            raise RigCheckError(f"{where}: attribute {key}: not valid JSON") from None
+        if not isinstance(d, dict):
+            raise RigCheckError(f"{where}: attribute {key}: expected an object")
+        if key == "wheel_used":
+            if d.get("source") != "measured":
+                return None
+            # simulate records the values plain, a rig check as {"value", "sem"}.
+            d = {**d, **{k: {"value": d.get(k)} for k in PARAMS}}
+        model = checked_rig_model(d, f"{where}: attribute {key}")
+        origin = d.get("detail") if key == "wheel_used" else d.get("path")
+        model["_path"] = str(origin) if origin else f"{where} ({key})"
+        model["_recorded_in"] = where
+        return model
+    return None
 
 
 def measured_world(rig_model: dict, world, wheel, fs_hz: float):

@@ -157,7 +157,15 @@ def _cmd_stop(a: argparse.Namespace) -> int:
 def _cmd_diagnose(a: argparse.Namespace) -> int:
     from steerlab.analysis.diagnosis import run_diagnosis
 
-    result = run_diagnosis(a.dir, a.out, jobs=a.jobs, progress=Progress("diagnose"), model=a.model)
+    result = run_diagnosis(
+        a.dir,
+        a.out,
+        jobs=a.jobs,
+        progress=Progress("diagnose"),
+        model=a.model,
+        rig_model=a.rig_model,
+        nominal_wheel=a.nominal_wheel,
+    )
     print(result.summary())
     return 0
 
@@ -296,6 +304,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--jobs", type=int, default=1)
     d.add_argument("--model", help="model.toml of an earlier diagnosis: its mechanisms become "
                    "the baseline")  # fmt: skip
+    w = d.add_mutually_exclusive_group()
+    w.add_argument("--rig-model", help="rig.json of steerlab rig-check: simulate the measured "
+                   "wheel (default: the measured wheel the session files record, else the "
+                   "nominal one)")  # fmt: skip
+    w.add_argument("--nominal-wheel", action="store_true", help="simulate the nominal wheel "
+                   "even if the session files record a measured one")  # fmt: skip
     d.set_defaults(func=_cmd_diagnose)
 
     u = sub.add_parser("gui", help="experimenter GUI and subject dashboard")

@@ -13,7 +13,10 @@ its conditions), exactly as a report fits them. For each condition and parameter
   1 when the SEMs describe the real scatter; ``robust_sd_over_median_sem``: the same with
   1.4826·MAD and the median SEM, insensitive to the few wild estimates;
 - ``coverage_95_percent``: share of replicates whose estimate ± 1.96·SEM contains the truth
-  (95 % for honest, normal errors).
+  (95 % for honest, normal errors); ``coverage_binomial_p``: the two-sided binomial test of that
+  count against 95 %. With 80 replicates a coverage is known to ±2.4 points, and honest SEMs
+  put about 5 of the 25 distinct cells outside 92–98 % by chance (docs/benchmarks.md,
+  2026-11-26); a small p, not a miss of the band, is what says a cell's SEMs are off.
 
 Goal (issue 13): ``sd_over_mean_sem`` within 0.8–1.25 and coverage within 92–98 % for every
 parameter and condition. ``paper`` (unless ``--no-compare``): the same replicates fitted with the
@@ -26,6 +29,7 @@ import argparse
 import time
 
 import numpy as np
+from scipy import stats
 
 from steerlab.analysis.armfit import BOUNDS
 from steerlab.analysis.study import AnalysisOptions, analyze_study
@@ -101,6 +105,9 @@ def summarise(truth: dict[str, float], est: np.ndarray, sem: np.ndarray) -> dict
             "sd_over_mean_sem": float(sd / np.mean(s)),
             "robust_sd_over_median_sem": float(mad / np.median(s)),
             "coverage_95_percent": float(100 * np.mean(np.abs(x - tv) <= 1.96 * s)),
+            "coverage_binomial_p": float(
+                stats.binomtest(int(np.sum(np.abs(x - tv) <= 1.96 * s)), x.size, 0.95).pvalue
+            ),
             "n_at_bound": at_bound,
         }
     return out

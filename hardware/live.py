@@ -23,7 +23,7 @@ import queue
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 
 import can
@@ -32,6 +32,7 @@ import serial
 
 from steerlab.hardware.can import (
     CiA402Drive,
+    DriveColumnTorque,
     SharedPlant,
     SimulatedDrive,
     SimulatedTorqueSensor,
@@ -98,6 +99,10 @@ class RigDevices:
     devices ``rig`` (a lab's rig: udp_loopback channel, pty) reaches; the trial's setup and the
     sensor zeroing's "let go" are passed on to its simulated subject."""
 
+    # Set once opened: a RigDevices that exists has both (close() also sees a partial one).
+    drive: CiA402Drive
+    glove: SerialGloveUnit
+
     def __init__(self, rig: RigConfig, *, subject_number: int = 1, lab=None) -> None:
         self.rig = rig
         self.lab = lab
@@ -108,8 +113,6 @@ class RigDevices:
         self.physiology: dict | None = None
         self.hands_off = False  # the current trial is a rig check's: no gloves needed
         self._buses: list[can.BusABC] = []
-        self.drive: CiA402Drive | None = None
-        self.glove: SerialGloveUnit | None = None
         drive_cfg = rig.drive
         try:
             port = rig.glove.port
@@ -119,6 +122,7 @@ class RigDevices:
                 from steerlab.hardware.sim.rig import simulated_rig
 
                 sim = rig.simulation
+                assert sim is not None  # rig.simulated
                 phys = make_population(subject_number, seed=sim.seed)[subject_number - 1]
                 self.physiology = phys.to_dict()
                 sim_rig = simulated_rig(phys, sim.world_config(rig.loop_rate_hz))
@@ -134,15 +138,15 @@ class RigDevices:
                 sensor_node = drive_cfg.torque_sensor.source == "node"
                 # A sensor node reads the plant on its own thread: both nodes go through one
                 # SharedPlant, which the drive node alone steps.
-                plant = SharedPlant(self.plant) if sensor_node else self.plant
-                self.node = SimulatedDrive(node_bus, drive_cfg, plant)
+                shared = SharedPlant(self.plant) if sensor_node else None
+                self.node = SimulatedDrive(node_bus, drive_cfg, shared or self.plant)
                 self.node.start()
-                if sensor_node:
+                if shared is not None:
                     sensor_bus = can.Bus(
                         interface="virtual", channel=drive_cfg.channel, receive_own_messages=False
                     )
                     self._buses.append(sensor_bus)
-                    self.sensor_node = SimulatedTorqueSensor(sensor_bus, drive_cfg, plant)
+                    self.sensor_node = SimulatedTorqueSensor(sensor_bus, drive_cfg, shared)
                 self.glove_sim = SimulatedGloveUnit(self.plant.grip, rig.glove.calibration).start()
                 port = self.glove_sim.port
             if lab is not None:
@@ -161,7 +165,7 @@ class RigDevices:
             raise
 
     @property
-    def torque_sensor(self):
+    def torque_sensor(self) -> DriveColumnTorque:
         return self.drive.torque_sensor
 
     def begin_trial(self, setup: TrialSetup) -> None:
@@ -232,7 +236,7 @@ class RigDevices:
         return None
 
     def status(self) -> dict:
-        d, g = self.drive, self.glove
+        d, g = getattr(self, "drive", None), getattr(self, "glove", None)
         st = g.stats().as_dict() if g is not None else {}
         return {
             "drive_state": getattr(d.state, "name", str(d.state)) if d else "none",
@@ -269,15 +273,18 @@ class RigDevices:
         )
 
     def close(self) -> None:
-        for closer in (
-            lambda: self.drive and self.drive.disable(),
-            lambda: self.drive and self.drive.close(),
-            lambda: self.glove and self.glove.close(),
-            lambda: self.glove_sim and self.glove_sim.close(),
-            lambda: self.node and self.node.close(),
-            lambda: self.sensor_node and self.sensor_node.close(),
-            lambda: self.lab and self.lab.close(),
+        drive = getattr(self, "drive", None)  # a failed __init__ may not have got so far
+        closers: list[Callable[[], object]] = [drive.disable, drive.close] if drive else []
+        for device in (
+            getattr(self, "glove", None),
+            self.glove_sim,
+            self.node,
+            self.sensor_node,
+            self.lab,
         ):
+            if device is not None:
+                closers.append(device.close)
+        for closer in closers:
             try:
                 closer()
             except Exception:

@@ -72,7 +72,7 @@ class DeviceLoop:
         *,
         realtime: bool = False,
         block_s: float = DEFAULT_BLOCK_S,
-        trial_hooks: Sequence[Callable[[TrialSetup], None]] = (),
+        trial_hooks: Sequence[Callable[[TrialSetup], object]] = (),  # return values unused
         pre_trial: Callable[[], None] | None = None,
         health: Callable[[], str | None] | None = None,
         estop: threading.Event | None = None,
@@ -277,7 +277,7 @@ class DeviceLoop:
                             self.display.show_angle(r.angle_rad)
                             if vehicle is not None and hasattr(self.display, "show_vehicle"):
                                 self.display.show_vehicle(vehicle.channels())
-                        if k + j == next_change:
+                        if k + j == next_change and self.display is not None:
                             _, cond, bd = changes.pop(0)
                             self.display.show_condition(cond, bd)
                             next_change = changes[0][0] if changes else -1

@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
@@ -41,6 +42,9 @@ from steerlab.protocols.datafile import DataFileError
 from steerlab.protocols.protocol import VirtualWheel
 from steerlab.protocols.records import STATUS_COMPLETE, TrialRecord
 
+if TYPE_CHECKING:  # wheel.py imports this module
+    from steerlab.analysis.diagnosis.wheel import DiagnosisWheel
+
 # The baseline's starting arms come from the report's default estimator (docs/method-estimator.md):
 # maximum likelihood with the measured, smoothed noise model, the rig's sampled-data response,
 # and one arm inertia per subject from the data. The paper's weighting with I_i held at 0.1
@@ -52,7 +56,6 @@ MIN_BAND_BINS = 16
 BAND_MIN_RATIO = 1.26  # a band spans at least a third of an octave
 TRANSIENT_ORDER = 2  # smooth terms (constant, slope) projected out of each band
 GRIP_LOWPASS_HZ = 2.0  # the slow grip fluctuation is below ~1 Hz; glove noise is white
-WHEEL_INERTIA_KGM2 = 0.3  # the rig's physical wheel inertia (Table 1; WorldConfig default)
 # A rig whose wheel relation Tp − Td = Z_w θ is off by more than this (relative error at the
 # excited bins) is not the rig the simulator models.
 RIG_MISMATCH_LIMIT = 0.5
@@ -102,6 +105,9 @@ class TrialData:
     spectra: TrialSpectra  # the paper's per-trial Fourier coefficients (analysis.frf)
     source: str = ""
     notes: list[str] = field(default_factory=list)
+    # The wheel the simulated world has (inertia, rendered b and k): nominal, or a rig check's
+    # (analysis.diagnosis.wheel); its wheel-side mechanisms are in the baseline's mechanisms.
+    wheel: VirtualWheel = field(default_factory=VirtualWheel)
     # Remnant realisations (N·m, n_sim samples each) for nonlinear models; set by the fit.
     remnant: list[np.ndarray] = field(default_factory=list)
     # Undo the model's torque-reading delay in the wheel-equation channel (final fit only).
@@ -206,10 +212,13 @@ def make_bands(n_bins: int) -> np.ndarray:
     return band
 
 
-def wheel_impedance(f_hz: np.ndarray, wheel: VirtualWheel | None = None) -> np.ndarray:
+def wheel_impedance(
+    f_hz: np.ndarray, wheel: VirtualWheel | None = None, gravity_nm: float = 0.0
+) -> np.ndarray:
+    """I s² + b s + k (+ m·g·r, an unbalanced wheel's gravity torque at small angles)."""
     w = wheel or VirtualWheel()
     s = 2j * np.pi * np.asarray(f_hz, dtype=float)
-    return WHEEL_INERTIA_KGM2 * s**2 + w.damping_nms_per_rad * s + w.stiffness_nm_per_rad
+    return w.inertia_kgm2 * s**2 + w.damping_nms_per_rad * s + w.stiffness_nm_per_rad + gravity_nm
 
 
 def _lowpass(x: np.ndarray, fs: float, fc: float) -> np.ndarray:
@@ -219,8 +228,9 @@ def _lowpass(x: np.ndarray, fs: float, fc: float) -> np.ndarray:
     return sosfiltfilt(sos, np.asarray(x, dtype=float))
 
 
-def prepare_trial(rec: TrialRecord) -> TrialData:
+def prepare_trial(rec: TrialRecord, wheel: VirtualWheel | None = None) -> TrialData:
     """Spectra and signals of one trial; ``ValueError`` (naming the trial) if unusable."""
+    wheel = wheel or VirtualWheel()
     where = rec.source or rec.label()
     fs = float(rec.fs_hz)
     T = record_period_s(rec)
@@ -278,13 +288,14 @@ def prepare_trial(rec: TrialRecord) -> TrialData:
         band=make_bands(K),
         Y=Y,
         Tp=channel_spectra(tp, start, stop, bins)[1],
-        Zw=wheel_impedance(f),
+        Zw=wheel_impedance(f, wheel),
         theta=seg_th - seg_th.mean(),
         td=seg_td - seg_td.mean(),
         arm0=arm0,
         arm_cell=arm0,
         spectra=spectra,
         source=rec.source,
+        wheel=wheel,
     )
 
 
@@ -297,6 +308,7 @@ class PreparedStudy:
     skipped: list[tuple[str, str]]  # (label, reason)
     notes: list[str]
     limits: list[str]  # what the data do not allow (shown prominently)
+    wheel_check: dict = field(default_factory=dict)  # the wheel fitted from the data (_check_rig)
 
     @property
     def subjects(self) -> list[str]:
@@ -324,12 +336,15 @@ def _perturbation_present(rec: TrialRecord) -> bool:
 
 
 def prepare_study(
-    records: Sequence[TrialRecord], inertia_kgm2: float | None = None
+    records: Sequence[TrialRecord],
+    wheel: DiagnosisWheel | None = None,
+    inertia_kgm2: float | None = None,
 ) -> PreparedStudy:
     """Select and prepare the trials; raise :class:`DiagnosisError` when nothing is usable.
-
-    ``inertia_kgm2``: hold every subject's arm inertia at this value instead of fitting it from
-    the data (see :func:`_cell_fits`)."""
+    ``wheel``: the wheel the data are checked against and simulated with (nominal by default;
+    see :mod:`analysis.diagnosis.wheel`). ``inertia_kgm2``: hold every subject's arm inertia at
+    this value instead of fitting it from the data (see :func:`_cell_fits`)."""
+    rendered = wheel.rendered if wheel is not None else None
     if not records:
         raise DiagnosisError("no trials in the data")
     skipped: list[tuple[str, str]] = []
@@ -364,7 +379,7 @@ def prepare_study(
     short: list[str] = []
     for r in chosen.values():
         try:
-            t = prepare_trial(r)
+            t = prepare_trial(r, rendered)
         except ValueError as e:
             msg = str(e)
             skipped.append((r.label(), msg))
@@ -392,8 +407,8 @@ def prepare_study(
     if inertia_kgm2 is not None:
         notes.append(f"arm inertia held at {inertia_kgm2:g} kg·m² (not fitted from the data)")
     fam.sort(key=lambda t: (t.subject, t.trial_index or 0))
-    _check_rig(trials)
-    prep = PreparedStudy(trials, fam, skipped, notes, limits)
+    check = _check_rig(trials, wheel)
+    prep = PreparedStudy(trials, fam, skipped, notes, limits, check)
     if not prep.has_held_out:
         limits.append(
             "only one measured repetition per subject × condition: no held-out check is "
@@ -478,10 +493,13 @@ def _cell_fits(
 
 
 def wheel_fit(
-    trials: Sequence[TrialData], f_max_hz: float = RIG_CHECK_MAX_HZ
+    trials: Sequence[TrialData],
+    f_max_hz: float = RIG_CHECK_MAX_HZ,
+    impedance: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[dict[str, float], float]:
     """The wheel's I, b, k fitted from Tp − Td = (I s² + b s + k) θ at the excited bins below
-    ``f_max_hz``, and the relative misfit of the rig's own wheel (Table 1) there."""
+    ``f_max_hz``, and the relative misfit there of ``impedance`` (frequencies in Hz → Z; by
+    default each trial's ``Zw``)."""
     rows, rhs, err, tot = [], [], 0.0, 0.0
     for t in trials:
         m = t.excited & (t.freqs_hz < f_max_hz)
@@ -493,7 +511,8 @@ def wheel_fit(
         rows.append(np.concatenate([A.real, A.imag]))
         b = lhs * w
         rhs.append(np.concatenate([b.real, b.imag]))
-        err += float(np.sum(np.abs((lhs - t.Zw[m] * th) * w) ** 2))
+        zw = t.Zw[m] if impedance is None else impedance(t.freqs_hz[m])
+        err += float(np.sum(np.abs((lhs - zw * th) * w) ** 2))
         tot += float(np.sum(np.abs(lhs * w) ** 2))
     A = np.concatenate(rows)
     b = np.concatenate(rhs)
@@ -505,8 +524,9 @@ def wheel_fit(
     }, math.sqrt(err / tot) if tot > 0 else float("nan")
 
 
-def _check_rig(trials: Sequence[TrialData]) -> None:
-    """Refuse data whose wheel is not the rig's rendered wheel, or with another sign convention."""
+def _check_rig(trials: Sequence[TrialData], wheel: DiagnosisWheel | None = None) -> dict:
+    """Refuse data whose wheel is not the rig's rendered wheel (``wheel``'s, nominal by
+    default), or with another sign convention. Returns the check's numbers, for the report."""
     # Low-frequency admittance must be positive with Steerlab's sign convention.
     re = []
     for t in trials:
@@ -521,17 +541,39 @@ def _check_rig(trials: Sequence[TrialData]) -> None:
             "opposite to Steerlab's convention (driver_torque_Nm is the torque the wheel exerts "
             "on the hands; docs/data-format.md). Flip it on import; nothing else is wrong."
         )
-    fitted, misfit = wheel_fit(trials)
+    rendered = wheel.rendered if wheel is not None else VirtualWheel()
+    gravity = wheel.mechanisms.wheel_imbalance.torque_nm if wheel is not None else 0.0
+    fitted, misfit = wheel_fit(trials, impedance=lambda f: wheel_impedance(f, rendered, gravity))
+    _, misfit_nominal = wheel_fit(trials, impedance=wheel_impedance)
     if not misfit <= RIG_MISMATCH_LIMIT:
-        w = VirtualWheel()
+        w = rendered
+        name = wheel.sentence() if wheel is not None else "nominal (Table 1)"
+        hint = (
+            ""
+            if wheel is not None and wheel.measured
+            else " If the rig was measured (steerlab rig-check), pass its rig.json with "
+            "--rig-model."
+        )
         raise DiagnosisError(
             "the data do not come from the rig the simulator models: at the excited "
             "frequencies Tp − Td differs from the wheel's rendered dynamics "
-            f"({WHEEL_INERTIA_KGM2} kg·m², {w.damping_nms_per_rad} N·m·s/rad, "
-            f"{w.stiffness_nm_per_rad} N·m/rad) times the angle by {100 * misfit:.0f} % "
+            f"({w.inertia_kgm2:.4g} kg·m², {w.damping_nms_per_rad:.4g} N·m·s/rad, "
+            f"{w.stiffness_nm_per_rad + gravity:.4g} N·m/rad; wheel: {name}) times the angle by "
+            f"{100 * misfit:.0f} % "
             f"(fitted from the data: I = {fitted['I_kgm2']:.3g} kg·m², "
             f"b = {fitted['b_Nms_per_rad']:.3g} N·m·s/rad, k = {fitted['k_Nm_per_rad']:.3g} "
             "N·m/rad); check the sign conventions of driver_torque_Nm and wheel_angle_rad "
             "(docs/data-format.md). What can still be said: the admittance θ/Td does not "
-            "depend on the wheel, so `steerlab report` still estimates it and fits the arm model."
+            "depend on the wheel, so `steerlab report` still estimates it and fits the arm "
+            f"model.{hint}"
         )
+    return {
+        "method": (
+            f"Tp − Td = (I s² + b s + k) θ at the excited bins below {RIG_CHECK_MAX_HZ:g} Hz "
+            "(equation error, each bin relative to its perturbation); misfit: relative error "
+            "of a wheel's linear impedance there (an imbalance counts as stiffness)"
+        ),
+        "fitted_from_data": fitted,
+        "misfit_percent": 100 * misfit,
+        "misfit_nominal_percent": 100 * misfit_nominal,
+    }

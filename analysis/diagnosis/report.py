@@ -412,6 +412,24 @@ def _vaf_table(result) -> str:
     return _table(["condition", "paper's FRF fit", "baseline", "extended"], rows)
 
 
+def _wheel_paragraph(result) -> str:
+    """Which wheel the simulated world has, and how well it and the nominal one fit the data."""
+    if not result.wheel_sentence:
+        return ""
+    check = result.wheel.get("check") or {}
+    fit = check.get("fitted_from_data")
+    extra = ""
+    if fit:
+        extra = (
+            f" Fitted from the data (Tp − Td = (I s² + b s + k) θ below 2 Hz): "
+            f"I = {fit['I_kgm2']:.3g} kg·m², b = {fit['b_Nms_per_rad']:.3g} N·m·s/rad, "
+            f"k = {fit['k_Nm_per_rad']:.3g} N·m/rad; relative misfit there of the simulated "
+            f"wheel {check['misfit_percent']:.1f} %, of the nominal wheel "
+            f"{check['misfit_nominal_percent']:.1f} %."
+        )
+    return f"<p><b>Wheel</b>: {_e(result.wheel_sentence)}.{_e(extra)}</p>"
+
+
 def write_html(path: Path, result, prep, setup, sel, drift) -> None:
     comp = result.comparison
     from steerlab.analysis.diagnosis import compare as C
@@ -457,6 +475,7 @@ def write_html(path: Path, result, prep, setup, sel, drift) -> None:
 (+ {d["n_familiarization_trials"]} familiarization trials, used only for the trial-order
 check), sampled at {_e(", ".join(f"{x:g}" for x in d["sample_rates_Hz"]))} Hz.
 {("Baseline: model file " + _e(result.baseline_model) + ".") if result.baseline_model else ""}</p>
+{_wheel_paragraph(result)}
 {_verdict(result)}
 {('<div class="warn"><b>Limits of these data</b><ul>' + limits + "</ul></div>") if limits else ""}
 

@@ -36,6 +36,7 @@ from steerlab.analysis.diagnosis.fit import (
     whitened_power,
 )
 from steerlab.analysis.diagnosis.simulate import remnant_spectrum_fit, simulated_spectra
+from steerlab.analysis.diagnosis.wheel import choose_wheel
 from steerlab.analysis.strict_json import json_clean
 from steerlab.hardware.sim.mechanisms import Drift, Mechanisms
 from steerlab.hardware.sim.model_file import (
@@ -74,6 +75,10 @@ class DiagnosisResult:
     model_path: Path | None = None
     timing_s: dict = field(default_factory=dict)
     baseline_model: str | None = None
+    # The wheel of the simulated world (analysis.diagnosis.wheel): DiagnosisWheel.to_dict(),
+    # plus "check": the wheel fitted from the data and how well each wheel fits them.
+    wheel: dict = field(default_factory=dict)
+    wheel_sentence: str = ""
 
     def to_dict(self) -> dict:
         return json_clean(
@@ -83,6 +88,7 @@ class DiagnosisResult:
                 "cause": self.cause,
                 "causes": self.causes,
                 "baseline_model": self.baseline_model,
+                "wheel": self.wheel,
                 "candidates": self.candidates,
                 "gain": self.gain,
                 "unexplained": self.unexplained,
@@ -96,7 +102,8 @@ class DiagnosisResult:
         )
 
     def summary(self) -> str:
-        lines = [f"cause: {self.cause}"]
+        lines = [f"wheel: {self.wheel_sentence}"] if self.wheel_sentence else []
+        lines.append(f"cause: {self.cause}")
         if len(self.causes) > 1:
             lines.append("all causes (strongest first): " + ", ".join(self.causes))
         for name in self.causes:
@@ -168,14 +175,22 @@ def run_diagnosis(
     progress: ProgressCallback | None = None,
     model: str | Path | None = None,
     candidates: tuple[str, ...] | None = None,
+    rig_model: str | Path | None = None,
+    nominal_wheel: bool = False,
     inertia_kgm2: float | None = None,
 ) -> DiagnosisResult:
     """Diagnose the session files in ``directory``; write diagnosis.json, index.html and
     model.toml into ``out`` (unless None). ``model``: a model file whose mechanisms become the
-    baseline (see docs/diagnosis.md: "diagnosing the extended model"). ``inertia_kgm2``: hold
-    the arm inertia at this value (default: one per subject, fitted from the data)."""
+    baseline (see docs/diagnosis.md: "diagnosing the extended model"). ``rig_model``: a rig
+    check's rig.json, the wheel to simulate; ``nominal_wheel``: the nominal wheel even where
+    the session files record a measured one; neither: the measured wheel the files record, if
+    any (docs/diagnosis.md: "The wheel"). ``inertia_kgm2``: hold the arm inertia at this value
+    (default: one per subject, fitted from the data)."""
     with _limit_threads():
-        return _run(directory, out, jobs, progress, model, candidates, inertia_kgm2)
+        return _run(
+            directory, out, jobs, progress, model, candidates, rig_model, nominal_wheel,
+            inertia_kgm2,
+        )  # fmt: skip
 
 
 def _run(
@@ -185,14 +200,19 @@ def _run(
     progress: ProgressCallback | None,
     model: str | Path | None,
     candidates: tuple[str, ...] | None,
+    rig_model: str | Path | None = None,
+    nominal_wheel: bool = False,
     inertia_kgm2: float | None = None,
 ) -> DiagnosisResult:
     t0 = time.perf_counter()
     timing: dict[str, float] = {}
     stages = _Stages(progress)
     stages("load")
+    choice = choose_wheel(directory, rig_model=rig_model, nominal=nominal_wheel)
     records = load_study(directory)
-    prep = prepare_study(records, inertia_kgm2)
+    # The actuator lag becomes the simulated loop's discrete lag at the data's rate.
+    wheel = choice.wheel(float(np.median([r.fs_hz for r in records])) if records else 1000.0)
+    prep = prepare_study(records, wheel, inertia_kgm2)
     base_mech = Mechanisms()
     model_baseline = None
     base_drift = 0.0
@@ -201,6 +221,8 @@ def _run(
         base_mech = mechanisms_from_model(data, str(model))
         model_baseline = baseline_from_model(data, str(model))
         base_drift = base_mech.drift.rate_per_trial
+    base_mech, replaced = wheel.apply(base_mech)
+    prep.notes.extend(choice.notes + replaced)
     names = tuple(candidates) if candidates is not None else CANDIDATE_NAMES
     unknown = set(names) - set(CANDIDATE_NAMES)
     if unknown:
@@ -234,6 +256,8 @@ def _run(
     stages.next("compare")
     t1 = time.perf_counter()
     result = _assemble(prep, setup, sel, drift, fam_arms, base_mech, model)
+    result.wheel = {**wheel.to_dict(), "check": prep.wheel_check}
+    result.wheel_sentence = wheel.sentence()
     timing["compare"] = time.perf_counter() - t1
 
     if out is not None:
@@ -707,6 +731,7 @@ def _model_text(
         "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "cause": result.cause,
         "causes": result.causes,
+        "wheel": result.wheel.get("source", "nominal"),
     }
     comments = [
         "Steerlab world model, written by `steerlab diagnose` (docs/diagnosis.md).",
@@ -714,4 +739,13 @@ def _model_text(
         "[baseline.*]: the typical subject per condition (geometric mean over subjects); "
         "[mechanisms.*]: the retained mechanisms, fitted parameters with se and ci95.",
     ]
+    rig_json = result.wheel.get("rig_json")
+    if rig_json:
+        # The measured wheel's friction, imbalance and lag are among [mechanisms.*]; its
+        # inertia, damping and stiffness are not, so the model needs the rig check with it.
+        header["rig_model"] = str(rig_json)
+        comments.append(
+            f"Diagnosed with the wheel measured by a rig check ({rig_json}): simulate with "
+            f"--rig-model {rig_json} as well"
+        )
     return world_model_text(baseline, mech, fitted, header, comments)

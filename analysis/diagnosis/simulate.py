@@ -63,6 +63,17 @@ def behaviour_for(trial: TrialData, arm: ArmParams) -> ConditionBehaviour:
     return ConditionBehaviour(arm, float(np.mean(g)), float(np.std(g)), 0.0)
 
 
+def trial_world(trial: TrialData, mechanisms: Mechanisms) -> World:
+    """The noiseless world at the trial's rate, with the trial's wheel (nominal or measured)."""
+    cfg = WorldConfig(
+        fs_hz=trial.fs_hz,
+        wheel_inertia_kgm2=trial.wheel.inertia_kgm2,
+        sensors=NOISELESS,
+        mechanisms=mechanisms,
+    )
+    return World(cfg, wheel=trial.wheel)
+
+
 def simulate_trial(
     trial: TrialData,
     arm: ArmParams,
@@ -70,7 +81,7 @@ def simulate_trial(
     remnant: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Simulated channels for the trial's first ``n_sim`` samples, as the world gives them."""
-    world = World(WorldConfig(fs_hz=trial.fs_hz, sensors=NOISELESS, mechanisms=mechanisms))
+    world = trial_world(trial, mechanisms)
     world.begin_trial(behaviour_for(trial, arm), 0.5, seed=0)
     world.noise = ReplayBlocks(trial.fs_hz, trial.grip, remnant)
     return world.run(trial.tp[: trial.n_sim])
@@ -254,9 +265,12 @@ def kernel_wheel_impedance(
     impulse response to a hand-torque impulse (DTFT at the bins).
     """
     mech, _ = _split(mechanisms)
+    # Dry friction has no impedance: linearised at rest (the impulse response) it is a damping
+    # F_c/ε, 15 N·m·s/rad for a measured 0.15 N·m, which no motion of the remnant's size sees.
+    mech = replace(mech, coulomb_friction=type(mech.coulomb_friction)())
     fs = trial.fs_hz
     n = int(round(duration_s * fs))
-    world = World(WorldConfig(fs_hz=fs, sensors=NOISELESS, mechanisms=mech))
+    world = trial_world(trial, mech)
     world.begin_trial(behaviour_for(trial, arm), 0.5, seed=0)
     impulse = np.zeros(n)
     impulse[0] = 1.0

@@ -415,14 +415,10 @@ class CiA402Drive:
         self._sensor_frame = (
             SensorFrame(ts.byte_offset, ts.bits) if self._sensor_id is not None else None
         )
-        self._sensor_hb = (
-            _HeartbeatWatch(ts.heartbeat_timeout_ms / 1000.0)
-            if self._sensor_id is not None and ts.heartbeat_timeout_ms > 0
-            else None
-        )
-        self._sensor_hb_id = (
-            heartbeat_cob_id(self._sensor_id) if self._sensor_hb is not None else None
-        )
+        sid = self._sensor_id
+        watched = sid is not None and ts.heartbeat_timeout_ms > 0
+        self._sensor_hb = _HeartbeatWatch(ts.heartbeat_timeout_ms / 1000.0) if watched else None
+        self._sensor_hb_id = heartbeat_cob_id(sid) if watched and sid is not None else None
         self._writes = startup_writes(config)
         self._tpdo_timeout_s = config.tpdo_timeout_ms / 1000.0
 
@@ -870,7 +866,7 @@ class CiA402Drive:
             elif cid == self._tpdo2_id:
                 self._tpdo2_raw = self._tpdo2.decode(data)
                 self._got(_RX_TPDO2)
-            elif cid == self._sensor_cob:
+            elif cid == self._sensor_cob and self._sensor_frame is not None:
                 self._sensor_raw = self._sensor_frame.decode(data)
                 self._got(_RX_SENSOR)
             elif cid == self._sdo_tx_id:
@@ -917,6 +913,8 @@ class CiA402Drive:
 
     def _on_sensor_heartbeat(self, state: int) -> None:
         hb = self._sensor_hb
+        if hb is None:  # only its COB-ID, set with the watch, leads here
+            return
         hb.feed(state, time.monotonic())
         if hb.lost_reported:
             log.warning("heartbeat from torque sensor node %d is back", self._sensor_id)
@@ -1119,6 +1117,7 @@ class CiA402Drive:
 
     def _wait_sensor_operational(self, seen_before: int) -> None:
         hb = self._sensor_hb
+        assert hb is not None  # called only where the sensor's heartbeat is watched
         if not hb.wait_for(NmtState.OPERATIONAL, seen_before):
             state = "none" if hb.state is None else nmt_state_name(hb.state)
             raise DriveEnableError(

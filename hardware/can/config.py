@@ -213,8 +213,9 @@ def drive_config_from_dict(data: dict[str, Any], *, source: str = "<dict>") -> D
     :raises ConfigError: as :func:`load_drive_config`.
     """
     drive = _table(data, "drive", source, required=True)
-    sensor_table = _table(drive, "torque_sensor", source, required=False, section="drive")
     safety_table = _table(data, "safety", source, required=True)
+    assert drive is not None and safety_table is not None  # required: _table raised otherwise
+    sensor_table = _table(drive, "torque_sensor", source, required=False, section="drive")
     drive = {k: v for k, v in drive.items() if k != "torque_sensor"}
 
     sensor = TorqueSensorConfig(

@@ -121,8 +121,11 @@ class SimulatedTorqueSensor:
             )
         self.config = config
         self.plant = plant
+        cob_id = sensor.frame_cob_id
+        if sensor.node_id is None or cob_id is None:
+            raise ValueError(f"{config.source}: [drive.torque_sensor] needs node_id")
         self.node_id: int = sensor.node_id
-        self.cob_id: int = sensor.frame_cob_id
+        self.cob_id: int = cob_id
         self.frame = SensorFrame(sensor.byte_offset, sensor.bits)
         if heartbeat_ms is None:
             timeout = sensor.heartbeat_timeout_ms

@@ -10,6 +10,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import can
 
@@ -38,7 +39,7 @@ def driver_filters(config: DriveConfig) -> list[can.typechecking.CanFilter]:
         heartbeat_cob_id(n),
     ]
     sensor = config.torque_sensor
-    if sensor.source == "node":
+    if sensor.source == "node" and sensor.node_id is not None and sensor.frame_cob_id is not None:
         ids.append(sensor.frame_cob_id)
         if sensor.heartbeat_timeout_ms > 0:
             ids.append(heartbeat_cob_id(sensor.node_id))
@@ -55,7 +56,7 @@ def open_bus(config: DriveConfig, *, filtered: bool = True, **kwargs: object) ->
     :raises can.CanError: the interface cannot be opened (subclasses
         ``CanInterfaceNotImplementedError``, ``CanInitializationError``).
     """
-    options: dict[str, object] = {"bitrate": config.bitrate}
+    options: dict[str, Any] = {"bitrate": config.bitrate}
     if config.interface == "virtual":
         # Our own frames must not come back to us as if the drive had sent them.
         options["receive_own_messages"] = False

@@ -37,10 +37,15 @@ import uuid
 from dataclasses import replace
 from multiprocessing.connection import Client, Listener
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from steerlab.hardware.can.config import UDP_LOOPBACK
 from steerlab.hardware.can.sim_node import SimulatedDrive
 from steerlab.hardware.can.transport import open_bus
+from steerlab.protocols.session import TrialSetup
+
+if TYPE_CHECKING:
+    from steerlab.hardware.live import WorldPlant
 
 FAULTS = (
     "stop_heartbeat",  # the drive's own heartbeat stops (it still drives)
@@ -97,6 +102,7 @@ class SimulatedLab:
         self.world = None  # the subject's world (hardware.live.WorldPlant), or None
         self.sensor_node = None
         self._buses = []
+        self.plant: HeldWheel | WorldPlant
         if subject is None:
             self.plant = HeldWheel(rig.loop_rate_hz)
         else:
@@ -115,13 +121,13 @@ class SimulatedLab:
             )
         with_sensor = subject is not None and self.config.torque_sensor.source == "node"
         # A sensor node reads the world on its own thread; the drive node alone steps it.
-        drive_plant = SharedPlant(self.plant) if with_sensor else self.plant
+        shared = SharedPlant(self.plant) if with_sensor else None
         self.bus = open_bus(self.config, filtered=False)
-        self.node = SimulatedDrive(self.bus, self.config, drive_plant)
-        if with_sensor:
+        self.node = SimulatedDrive(self.bus, self.config, shared or self.plant)
+        if shared is not None:
             sensor_bus = open_bus(self.config, filtered=False)
             self._buses.append(sensor_bus)
-            self.sensor_node = SimulatedTorqueSensor(sensor_bus, self.config, drive_plant)
+            self.sensor_node = SimulatedTorqueSensor(sensor_bus, self.config, shared)
         self.glove = SimulatedGloveUnit(self.plant.grip, rig.glove.calibration).start()
         self._listener: Listener | None = None
 
@@ -135,8 +141,11 @@ class SimulatedLab:
 
     def _accept(self) -> None:
         while True:
+            listener = self._listener
+            if listener is None:
+                return
             try:
-                conn = self._listener.accept()
+                conn = listener.accept()
             except Exception:  # closed, or a client with the wrong key
                 if self._listener is None:
                     return
@@ -162,7 +171,10 @@ class SimulatedLab:
         if w is None:
             raise ValueError(f"{op!r}: this lab has no simulated subject (start it with --subject)")
         if op == "begin_trial":
-            w.begin_trial(args[0])
+            setup = args[0]
+            if not isinstance(setup, TrialSetup):
+                raise TypeError(f"begin_trial: a TrialSetup, not {type(setup).__name__}")
+            w.begin_trial(setup)
         elif op == "release":  # the subject lets go (sensor zeroing)
             w.released = True
         elif op == "hold":
@@ -330,6 +342,8 @@ class LabProcess:
             bufsize=1,
             env={**os.environ, **SINGLE_THREADED_MATH, AUTHKEY_ENV: self.authkey.hex()},
         )
+        assert self.proc.stdin is not None and self.proc.stdout is not None  # PIPE, PIPE
+        self._stdin, self._stdout = self.proc.stdin, self.proc.stdout
         self._lock = threading.Lock()
         ready = self._read(start_timeout_s)
         if not ready.get("ready"):
@@ -341,7 +355,7 @@ class LabProcess:
 
     def _read(self, timeout_s: float) -> dict:
         result: list[str] = []
-        t = threading.Thread(target=lambda: result.append(self.proc.stdout.readline()))
+        t = threading.Thread(target=lambda: result.append(self._stdout.readline()))
         t.daemon = True
         t.start()
         t.join(timeout_s)
@@ -351,8 +365,8 @@ class LabProcess:
 
     def ask(self, op: str, timeout_s: float = 10.0, **kw: object) -> dict:
         with self._lock:
-            self.proc.stdin.write(json.dumps({"op": op, **kw}) + "\n")
-            self.proc.stdin.flush()
+            self._stdin.write(json.dumps({"op": op, **kw}) + "\n")
+            self._stdin.flush()
             return self._read(timeout_s)
 
     def status(self) -> dict:
@@ -382,7 +396,7 @@ class LabProcess:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(5)
-        for f in (self.proc.stdin, self.proc.stdout):
+        for f in (self._stdin, self._stdout):
             try:
                 f.close()
             except OSError:

@@ -130,11 +130,12 @@ class Mechanisms:
 
     @classmethod
     def from_dict(cls, d: dict) -> Mechanisms:
-        kinds = {f.name: f.default_factory for f in fields(cls)}  # type: ignore[misc]
+        defaults = cls()
+        kinds = {f.name: type(getattr(defaults, f.name)) for f in fields(cls)}
         unknown = set(d) - set(kinds)
         if unknown:
             raise ValueError(f"unknown mechanism(s) {sorted(unknown)}; known: {sorted(kinds)}")
-        return cls(**{k: kinds[k]().__class__(**v) for k, v in d.items()})
+        return cls(**{k: kinds[k](**v) for k, v in d.items()})
 
     # -- kernel slots (see hardware.sim.world) ---------------------------------------------
     def configure(self, p: np.ndarray, behaviour, fs_hz: float) -> None:

@@ -166,7 +166,7 @@ def make_population(
         left = float(np.clip(rng.normal(0.5, spread.hand_share_sd), 0.3, 0.7))
         seed_k = int(rng.integers(2**31))
         # Drawn last, so every other draw is as it was before inertia varied.
-        inertia = _lognormal(rng, spread.inertia_cv)
+        inertia = float(_lognormal(rng, spread.inertia_cv))
         behaviour = {c: replace(b, arm=b.arm.scaled(I_i=inertia)) for c, b in behaviour.items()}
         subjects.append(
             SubjectPhysiology(

@@ -261,3 +261,67 @@ def test_drift_removal_makes_the_high_band_errors_circular_and_honest():
             assert 0.6 < ratio_re_im < 1.6 and 0.75 < honest < 1.3
         else:  # the leak Δ/(jπk) is purely imaginary here
             assert ratio_re_im < 0.5
+
+
+def _spectra_with_noise(template, rng, H, G, g, c, sensor=0.0):
+    """``template``'s bins with complex-normal remnant spectra written in directly: at every
+    bin, excited or not, Td = G·Tp + g·N and θ = H·Td + c·N (+ sensor noise), N ~ CN(0, 1):
+    the remnant drives both θ and Td, as in the closed loop."""
+    tp = template.tp
+    shape, nshape = tp.shape, template.noise_td.shape
+
+    def cn(s):
+        return (rng.standard_normal(s) + 1j * rng.standard_normal(s)) / np.sqrt(2)
+
+    n, nn = cn(shape), cn(nshape)
+    td = G * tp + g * n
+    ntd = g * nn
+    return dataclasses.replace(
+        template,
+        td=td,
+        theta=H * td + c * n + sensor * cn(shape),
+        noise_td=ntd,
+        noise_theta=H * ntd + c * nn + sensor * cn(nshape),
+    )
+
+
+def test_compensated_frf_removes_the_remnants_correlated_error():
+    """The remnant drives θ and Td alike, so S_TpTd's noise and Ĥ's error are correlated
+    (ρ ≈ 1 in the simulator). A weight that grows with |S_TpTd|² then pulls the error in: the
+    |S_TpTd|²-weighted mean error is Σ|Tp|²·c·g / (|a|² + Σ|Tp|²·g²) (analytic, a = E S_TpTd),
+    which the maximum-likelihood fit turned into a bias (RT b_i +1.7 %, I_i +0.3 %: 0.4 SEM).
+    The compensated estimate with its weight q = |S_TpTd|² − Σ|Tp|²·S_TdTd(noise bins) has a
+    q-weighted mean error of 0, and E[q] = |a|²."""
+    template = trial_spectra(make_trial(fs_hz=200.0, run_in_s=2.0))
+    rng = np.random.default_rng(11)
+    H, G = 0.05 - 0.02j, 0.3 + 0.1j
+    j, N_DRAWS = 20, 600
+    cols = template.excitation.band_of_bin == j
+    s_tp = float(np.sum(np.abs(template.tp[:, cols]) ** 2))
+    # Td's noise g·N with a share r = 0.1 of |S_TpTd|² at band j (RT has 0.05 near 1 Hz);
+    # e = c·N, so ρ = 1, as nearly in the simulator (0.97-0.99).
+    g = np.sqrt(0.1 * abs(G) ** 2 * s_tp)
+    c = 0.1 * g
+    a2 = abs(G * s_tp) ** 2
+    r = s_tp * g**2 / a2
+    assert 0.03 < r < 0.3, r
+    err_plain, err_comp, d2, q = [], [], [], []
+    for _ in range(N_DRAWS):
+        sp = _spectra_with_noise(template, rng, H, G, g, c)
+        fr = frequency_response(sp)
+        d = np.sum(np.conj(sp.tp[:, cols]) * sp.td[:, cols])
+        d2.append(abs(d) ** 2)
+        q.append(abs(d) ** 2 - s_tp * fr.noise_td_Nm2[j])
+        err_plain.append(fr.H[j] - H)
+        err_comp.append(fr.H_compensated[j] - H)
+    d2, q = np.array(d2), np.array(q)
+    err_plain, err_comp = np.array(err_plain), np.array(err_comp)
+    se = np.sqrt(s_tp * c**2 / a2 / N_DRAWS)  # SE of a mean of N_DRAWS band errors
+    weighted_plain = np.sum(d2 * err_plain) / np.sum(d2)
+    weighted_comp = np.sum(q * err_comp) / np.sum(q)
+    expected = s_tp * c * g / (a2 + s_tp * g**2)
+    assert expected > 5 * se  # the effect is real at this noise share …
+    assert abs(weighted_plain - expected) < 3 * se  # … the plain ratio shows it …
+    assert abs(weighted_comp) < 3 * se  # … and the compensated estimate does not
+    assert np.mean(d2) / a2 == pytest.approx(1 + r, abs=0.04)
+    assert np.mean(q) / a2 == pytest.approx(1.0, abs=0.04)
