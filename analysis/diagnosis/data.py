@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
-from steerlab.analysis.armfit import FitOptions, fit_arm
+from steerlab.analysis.armfit import FitOptions, fit_arm, fit_arm_joint
 from steerlab.analysis.frf import TrialSpectra, frequency_response, trial_spectra
 from steerlab.analysis.periods import (
     Excitation,
@@ -45,10 +45,12 @@ from steerlab.protocols.records import STATUS_COMPLETE, TrialRecord
 if TYPE_CHECKING:  # wheel.py imports this module
     from steerlab.analysis.diagnosis.wheel import DiagnosisWheel
 
-# The diagnosis keeps the fit it was built and checked with (the paper's weighting, I_i held
-# at 0.1, continuous-time model): its baseline and mechanism tests are tuned to it. Moving it
-# to the report's default estimator is part of fitting the baseline to the data (issue 18).
-DIAGNOSIS_FIT = FitOptions(weighting="paper", inertia="fixed", sampling="ideal")
+# The baseline's starting arms come from the report's default estimator (docs/method-estimator.md):
+# maximum likelihood with the measured, smoothed noise model, the rig's sampled-data response,
+# and one arm inertia per subject from the data. The paper's weighting with I_i held at 0.1
+# (the diagnosis' fit until issue 18) misfitted every trial of a world whose arm is 0.07 kg·m²,
+# and the misfit was then reported as "unexplained" on null data.
+DIAGNOSIS_FIT = FitOptions()
 F_MAX_HZ = 25.0
 MIN_BAND_BINS = 16
 BAND_MIN_RATIO = 1.26  # a band spans at least a third of an octave
@@ -98,7 +100,7 @@ class TrialData:
     Zw: np.ndarray  # complex (n_bins,), wheel impedance I s² + b s + k
     theta: np.ndarray  # measured segment (mean-free)
     td: np.ndarray
-    arm0: ArmParams  # the paper's FRF fit of this trial alone: a start for the diagnosis
+    arm0: ArmParams  # the FRF fit of this trial alone (subject's I_i held): a start
     arm_cell: ArmParams  # the FRF fit of the subject × condition (all repetitions): another
     spectra: TrialSpectra  # the paper's per-trial Fourier coefficients (analysis.frf)
     source: str = ""
@@ -110,6 +112,10 @@ class TrialData:
     remnant: list[np.ndarray] = field(default_factory=list)
     # Undo the model's torque-reading delay in the wheel-equation channel (final fit only).
     undo_reading_delay: bool = False
+    # The subject's arm inertia from the data (:func:`_cell_fits`), NaN until fitted; every
+    # arm the diagnosis simulates for this trial carries it.
+    I_i: float = float("nan")
+    I_i_sem: float | None = None
     _projector: Callable[[np.ndarray], np.ndarray] | None = field(default=None, repr=False)
 
     def __getstate__(self) -> dict:
@@ -257,10 +263,9 @@ def prepare_trial(rec: TrialRecord, wheel: VirtualWheel | None = None) -> TrialD
     Y = measurement_spectra(th, td, start, stop, bins)
     seg_th, seg_td = th[start:stop], td[start:stop]
     spectra = trial_spectra(rec, selection=sel, excitation=exc)
-    try:
-        arm0 = ArmParams(**fit_arm(frequency_response(spectra), DIAGNOSIS_FIT).params.as_dict())
-    except (ValueError, np.linalg.LinAlgError):
-        arm0 = FALLBACK_ARM
+    # The FRF fits need the subject's inertia, which needs all of the subject's trials:
+    # :func:`_cell_fits` replaces this placeholder.
+    arm0 = FALLBACK_ARM
     f = bins * fs / P
     return TrialData(
         label=rec.label(),
@@ -331,11 +336,14 @@ def _perturbation_present(rec: TrialRecord) -> bool:
 
 
 def prepare_study(
-    records: Sequence[TrialRecord], wheel: DiagnosisWheel | None = None
+    records: Sequence[TrialRecord],
+    wheel: DiagnosisWheel | None = None,
+    inertia_kgm2: float | None = None,
 ) -> PreparedStudy:
     """Select and prepare the trials; raise :class:`DiagnosisError` when nothing is usable.
     ``wheel``: the wheel the data are checked against and simulated with (nominal by default;
-    see :mod:`analysis.diagnosis.wheel`)."""
+    see :mod:`analysis.diagnosis.wheel`). ``inertia_kgm2``: hold every subject's arm inertia at
+    this value instead of fitting it from the data (see :func:`_cell_fits`)."""
     rendered = wheel.rendered if wheel is not None else None
     if not records:
         raise DiagnosisError("no trials in the data")
@@ -395,7 +403,9 @@ def prepare_study(
             f"trials recorded at several rates ({sorted(fs)} Hz); each is simulated at its own"
         )
     trials.sort(key=lambda t: (t.subject, t.trial_index or 0, t.condition, t.repetition))
-    _cell_fits(trials)
+    _cell_fits(trials, fam, inertia_kgm2)
+    if inertia_kgm2 is not None:
+        notes.append(f"arm inertia held at {inertia_kgm2:g} kg·m² (not fitted from the data)")
     fam.sort(key=lambda t: (t.subject, t.trial_index or 0))
     check = _check_rig(trials, wheel)
     prep = PreparedStudy(trials, fam, skipped, notes, limits, check)
@@ -416,18 +426,70 @@ def prepare_study(
     return prep
 
 
-def _cell_fits(trials: Sequence[TrialData]) -> None:
-    cells: dict[tuple[str, str], list[TrialData]] = {}
+def with_inertia(arm: ArmParams, trial: TrialData) -> ArmParams:
+    """``arm`` with the trial's subject's inertia (from the data), where it has been fitted."""
+    if math.isfinite(trial.I_i):
+        return replace(arm, I_i=trial.I_i)
+    return arm
+
+
+def _cell_fits(
+    trials: Sequence[TrialData],
+    fam: Sequence[TrialData] = (),
+    inertia_kgm2: float | None = None,
+) -> None:
+    """The FRF fits that start the baseline, with the report's default estimator.
+
+    Per subject, one joint fit of all its subject × condition responses (all repetitions of a
+    condition pooled) with one I_i shared by the conditions; then each trial alone (measured and
+    familiarization) with that I_i held. A subject whose joint fit fails keeps each cell's own
+    fit (I_i free), and failing that the fallback arm; the trial's I_i is then the cell's.
+    With ``inertia_kgm2`` every subject's I_i is held at that value instead.
+    """
+    options = DIAGNOSIS_FIT
+    if inertia_kgm2 is not None:
+        options = replace(DIAGNOSIS_FIT, inertia="fixed", I_i=float(inertia_kgm2))
+    by_subject: dict[str, dict[str, list[TrialData]]] = {}
     for t in trials:
-        cells.setdefault(t.cell, []).append(t)
-    for items in cells.values():
+        by_subject.setdefault(t.subject, {}).setdefault(t.condition, []).append(t)
+    for subject, cells in by_subject.items():
+        conds = list(cells)
+        ests = [frequency_response([t.spectra for t in cells[c]]) for c in conds]
         try:
-            fit = fit_arm(frequency_response([t.spectra for t in items]), DIAGNOSIS_FIT)
-        except ValueError:
+            joint = fit_arm_joint(ests, options, labels=conds)
+            I_i, I_sem = float(joint.I_i), joint.I_i_sem
+            cell_arm = {c: ArmParams(**f.params.as_dict()) for c, f in joint.by_label().items()}
+        except (ValueError, np.linalg.LinAlgError):
+            I_i, I_sem, cell_arm = float("nan"), None, {}
+            for c, est in zip(conds, ests, strict=True):
+                try:
+                    cell_arm[c] = ArmParams(**fit_arm(est, options).params.as_dict())
+                except (ValueError, np.linalg.LinAlgError):
+                    continue
+        if not (math.isfinite(I_i) and I_i > 0):
+            vals = [a.I_i for a in cell_arm.values()]
+            I_i = float(np.exp(np.mean(np.log(vals)))) if vals else FALLBACK_ARM.I_i
+        held = replace(options, inertia="fixed", I_i=I_i)
+        subject_trials = [t for c in conds for t in cells[c]]
+        subject_trials += [t for t in fam if t.subject == subject]
+        for t in subject_trials:
+            t.I_i, t.I_i_sem = I_i, I_sem
+            t.arm_cell = cell_arm.get(t.condition, replace(FALLBACK_ARM, I_i=I_i))
+            try:
+                fit = fit_arm(frequency_response(t.spectra), held)
+                t.arm0 = ArmParams(**fit.params.as_dict())
+            except (ValueError, np.linalg.LinAlgError):
+                t.arm0 = t.arm_cell
+    # A familiarization trial of a subject without measured trials: its own fit.
+    for t in fam:
+        if math.isfinite(t.I_i):
             continue
-        arm = ArmParams(**fit.params.as_dict())
-        for t in items:
-            t.arm_cell = arm
+        try:
+            t.arm0 = ArmParams(**fit_arm(frequency_response(t.spectra), options).params.as_dict())
+            t.I_i = t.arm0.I_i
+        except (ValueError, np.linalg.LinAlgError):
+            t.I_i = FALLBACK_ARM.I_i
+        t.arm_cell = t.arm0
 
 
 def wheel_fit(

@@ -35,6 +35,8 @@ Drift is judged separately, on the per-trial arm parameters (:mod:`analysis.diag
 from __future__ import annotations
 
 import concurrent.futures as cf
+import math
+import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
@@ -42,12 +44,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from steerlab.analysis.diagnosis.candidates import CANDIDATES, Candidate, candidate
-from steerlab.analysis.diagnosis.data import PreparedStudy, TrialData
+from steerlab.analysis.diagnosis.data import FALLBACK_ARM, PreparedStudy, TrialData, with_inertia
 from steerlab.analysis.diagnosis.fit import (
     FitResult,
     ModelSpec,
     NoiseModel,
     best_start_arms,
+    evaluate_cost,
     fit_model,
     noise_model,
 )
@@ -72,6 +75,13 @@ MAX_MECHANISMS = 3
 RETRY_MIN_DELTA_M2LL = 6.0
 K_REMNANT_SELECT = 1  # remnant realisations (± pairs) while screening candidates …
 K_REMNANT_FINAL = 8  # … and for the retained model's parameters (see simulate.py)
+# Time limit of the candidate stage (s): CPU seconds of the diagnosing process with one job,
+# wall-clock seconds with several (the workers' CPU time is not visible while they run). CPU
+# time, because on a shared machine wall time measures the other users: on the development
+# machine a run was stopped for 10 minutes by a colleague's real-time measurement. Long trials
+# or a misbehaving candidate could make the stage run away (issue 18: "no answer within
+# 300 s"); at the limit the candidates not yet evaluated are left out, and the result says so.
+CANDIDATE_TIME_LIMIT_S = 300.0
 
 Progress = Callable[[str], None]
 
@@ -104,16 +114,15 @@ def _degenerate(arm: ArmParams) -> bool:
 
 def plausible_arm(t: TrialData, model_baseline: dict | None = None) -> ArmParams:
     """The trial's subject × condition FRF fit unless it ran into a bound; else the model
-    file's or the simulator's nominal arm for the condition; else a mid-range arm."""
+    file's or the simulator's nominal arm for the condition; else a mid-range arm. Whichever
+    it is, with the subject's inertia from the data."""
     for arm in (t.arm_cell, t.arm0):
         if not _degenerate(arm):
-            return arm
+            return with_inertia(arm, t)
     for source in (model_baseline or {}, NOMINAL):
         if t.condition in source:
-            return source[t.condition].arm
-    from steerlab.analysis.diagnosis.data import FALLBACK_ARM
-
-    return FALLBACK_ARM
+            return with_inertia(source[t.condition].arm, t)
+    return with_inertia(FALLBACK_ARM, t)
 
 
 def start_arms(
@@ -137,6 +146,46 @@ def start_arms(
         for t in trials
     }
     return best_start_arms(trials, spec, noise, [fixed, plausible], x=x)
+
+
+def _new_off(spec: ModelSpec, x: np.ndarray) -> np.ndarray:
+    """``x`` with the last candidate of ``spec`` (the one being tried) switched off."""
+    if not spec.free:
+        return np.asarray(x, dtype=float)
+    k = len(spec.free[-1].params)
+    out = np.array(x, dtype=float, copy=True)
+    out[len(out) - k :] = spec.off()[len(out) - k :]
+    return out
+
+
+def fit_nested(
+    trials: Sequence[TrialData],
+    spec: ModelSpec,
+    noise: NoiseModel,
+    arms0: dict[str, ArmParams],
+    x0: np.ndarray,
+    fallback_arms: dict[str, ArmParams],
+    fallback_x: np.ndarray,
+    fix_mechanisms: bool = False,
+) -> FitResult:
+    """:func:`fit_model` from ``arms0``; if it ends worse than the model it extends
+    (``fallback_arms`` at ``fallback_x``: the candidate switched off), fitted again from there.
+
+    :func:`start_arms` replaces arms that ran into a bound by plausible ones, and a fit from
+    those can end far from the current model: on a world with a 35 ms reflex the baseline's
+    intrinsic damping went to its bound, and every candidate started from plausible arms ended
+    10⁴ units of −2 log L worse than the baseline it contains. A candidate must never look
+    worse than the model it extends.
+    """
+    fit = fit_model(trials, spec, noise, arms0, x0=x0, fix_mechanisms=fix_mechanisms)
+    ref = 2.0 * sum(evaluate_cost(trials, spec, noise, fallback_arms, fallback_x).values())
+    if ref < fit.m2ll:
+        alt = fit_model(
+            trials, spec, noise, fallback_arms, x0=fallback_x, fix_mechanisms=fix_mechanisms
+        )
+        if alt.m2ll < fit.m2ll:
+            fit = alt
+    return fit
 
 
 def set_remnants(trials: Sequence[TrialData], arms: dict[str, ArmParams], k: int) -> None:
@@ -167,7 +216,7 @@ def build_setup(
     starts = [{t.label: t.arm0 for t in trials}, {t.label: t.arm_cell for t in trials}]
     for source in (model_baseline or {}, NOMINAL):
         if all(t.condition in source for t in trials):
-            starts.append({t.label: source[t.condition].arm for t in trials})
+            starts.append({t.label: with_inertia(source[t.condition].arm, t) for t in trials})
     if progress:
         progress("baseline fit")
     arms = best_start_arms(trials, spec0, noise0, starts)
@@ -253,11 +302,11 @@ def _fold_eval(
             x0 = None if x_starts is None else x_starts[i]
             x0 = spec.start() if x0 is None else x0
             a0 = start_arms(setup, train, spec, setup.noise, x0, arms)
-            x = fit_model(train, spec, setup.noise, a0, x0=x0).x
+            x = fit_nested(train, spec, setup.noise, a0, x0, arms, _new_off(spec, x0)).x
         else:
             x = spec.off()
         a0 = start_arms(setup, test, spec, setup.noise, x, arms)
-        te = fit_model(test, spec, setup.noise, a0, x0=x, fix_mechanisms=True)
+        te = fit_nested(test, spec, setup.noise, a0, x, arms, x, fix_mechanisms=True)
         xs.append(x)
         costs.append(te.m2ll)
     return xs, costs
@@ -275,7 +324,7 @@ def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> 
     spec = ModelSpec(current.spec.base, current.spec.free + (cand,), current.spec.fs_ref)
     x0 = np.concatenate([current.fit.x, spec.start()[current.spec.n_free :]])
     a0 = start_arms(setup, setup.trials, spec, setup.noise, x0, current.fit.arms)
-    fit = fit_model(setup.trials, spec, setup.noise, a0, x0=x0)
+    fit = fit_nested(setup.trials, spec, setup.noise, a0, x0, current.fit.arms, _new_off(spec, x0))
     d_m2ll = current.fit.m2ll - fit.m2ll
     d_bic = fit.bic - current.fit.bic
     gain = None
@@ -383,6 +432,8 @@ class Selection:
     # every candidate, so its −2 log L and BIC compare with theirs (``final`` is re-fitted
     # with the noise re-estimated from its own residual, for its parameters).
     final_as_selected: FitResult | None = None
+    # What the time limit left undone (empty when the selection ran to its end).
+    undone: list[str] = field(default_factory=list)
 
 
 def select(
@@ -390,8 +441,20 @@ def select(
     names: Sequence[str] | None = None,
     jobs: int = 1,
     progress: Progress | None = None,
+    time_limit_s: float | None = None,
 ) -> Selection:
+    """Greedy forward selection (module docstring). ``time_limit_s``: the candidate stage's
+    limit (default :data:`CANDIDATE_TIME_LIMIT_S`, read at call time; ``math.inf``: none)."""
     pool = [c.name for c in CANDIDATES] if names is None else list(names)
+    if time_limit_s is None:
+        time_limit_s = CANDIDATE_TIME_LIMIT_S
+    clock = time.process_time if jobs <= 1 else time.monotonic
+    deadline = clock() + time_limit_s
+    undone: list[str] = []
+
+    def late() -> bool:
+        return clock() > deadline
+
     current = make_current(setup, setup.spec(), setup.base)
     steps: list[list[CandidateResult]] = []
     retained: list[CandidateResult] = []
@@ -413,21 +476,34 @@ def select(
                 ]  # fmt: skip
             if not remaining:
                 break
+            if late():
+                undone.append(f"step {step} not started ({', '.join(remaining)} not tried)")
+                break
             if progress:
                 progress(f"step {step}: {len(remaining)} candidates")
+            results: list[CandidateResult] = []
             if executor is not None:
-                futs = [executor.submit(_worker_eval, current, n, step) for n in remaining]
-                results = [f.result() for f in futs]
+                futs = {executor.submit(_worker_eval, current, n, step): n for n in remaining}
+                wait = max(deadline - clock(), 0.0) if math.isfinite(deadline) else None
+                done, pending = cf.wait(futs, timeout=wait)
+                results = [f.result() for f in futs if f in done]
+                if pending:
+                    _abandon(executor)
+                    executor = None
+                    names_left = ", ".join(futs[f] for f in futs if f in pending)
+                    undone.append(f"step {step}: {names_left} not evaluated")
             else:
-                results = []
-                for n in remaining:
+                for i, n in enumerate(remaining):
+                    if late():
+                        undone.append(f"step {step}: {', '.join(remaining[i:])} not evaluated")
+                        break
                     if progress:
                         progress(f"step {step}: {n}")
                     results.append(evaluate_candidate(setup, current, n, step))
             judge(results, held_out=bool(setup.folds))
             steps.append(results)
             passing = [r for r in results if r.passed]
-            if not passing:
+            if not passing or undone:
                 break
             key = (lambda r: r.held_out_gain) if setup.folds else (lambda r: -r.delta_bic)
             best = max(passing, key=key)
@@ -438,7 +514,12 @@ def select(
             executor.shutdown()
     final_spec = current.spec
     final = current.fit
-    if final_spec.n_free:
+    if final_spec.n_free and late():
+        undone.append(
+            "the retained model's final re-fit (own noise model, more remnant realisations) "
+            "not done: its parameters are those of the selection"
+        )
+    elif final_spec.n_free:
         # The retained model's parameters: with the noise re-estimated from its own residual
         # (the baseline's residual holds the distortion the mechanism explains, which
         # under-weights the unexcited bins), and for a nonlinear mechanism from more remnant
@@ -455,7 +536,17 @@ def select(
         a0 = start_arms(setup, setup.trials, final_spec, setup.final_noise, final.x, final.arms)
         final = fit_model(setup.trials, final_spec, setup.final_noise, a0, x0=final.x)
         _confirm_refits(setup, retained, final)
-    return Selection(steps, retained, final, final_spec, setup.base, current.fold_x, current.fit)
+    return Selection(
+        steps, retained, final, final_spec, setup.base, current.fold_x, current.fit, undone
+    )
+
+
+def _abandon(executor: cf.ProcessPoolExecutor) -> None:
+    """Stop a pool whose work is no longer wanted: queued work is cancelled and the workers
+    still busy are terminated (shutdown alone would wait for them)."""
+    executor.shutdown(wait=False, cancel_futures=True)
+    for proc in list(getattr(executor, "_processes", {}).values()):
+        proc.terminate()
 
 
 def _confirm_refits(setup: Setup, retained: list[CandidateResult], final: FitResult) -> None:

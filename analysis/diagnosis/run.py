@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from steerlab.analysis.diagnosis import compare as C
+from steerlab.analysis.diagnosis import engine
 from steerlab.analysis.diagnosis.candidates import CANDIDATE_NAMES
 from steerlab.analysis.diagnosis.data import DiagnosisError, PreparedStudy, TrialData, prepare_study
 from steerlab.analysis.diagnosis.drift import DriftResult, TrialStiffness, analyse_drift
@@ -176,15 +177,20 @@ def run_diagnosis(
     candidates: tuple[str, ...] | None = None,
     rig_model: str | Path | None = None,
     nominal_wheel: bool = False,
+    inertia_kgm2: float | None = None,
 ) -> DiagnosisResult:
     """Diagnose the session files in ``directory``; write diagnosis.json, index.html and
     model.toml into ``out`` (unless None). ``model``: a model file whose mechanisms become the
     baseline (see docs/diagnosis.md: "diagnosing the extended model"). ``rig_model``: a rig
     check's rig.json, the wheel to simulate; ``nominal_wheel``: the nominal wheel even where
     the session files record a measured one; neither: the measured wheel the files record, if
-    any (docs/diagnosis.md: "The wheel")."""
+    any (docs/diagnosis.md: "The wheel"). ``inertia_kgm2``: hold the arm inertia at this value
+    (default: one per subject, fitted from the data)."""
     with _limit_threads():
-        return _run(directory, out, jobs, progress, model, candidates, rig_model, nominal_wheel)
+        return _run(
+            directory, out, jobs, progress, model, candidates, rig_model, nominal_wheel,
+            inertia_kgm2,
+        )  # fmt: skip
 
 
 def _run(
@@ -196,6 +202,7 @@ def _run(
     candidates: tuple[str, ...] | None,
     rig_model: str | Path | None = None,
     nominal_wheel: bool = False,
+    inertia_kgm2: float | None = None,
 ) -> DiagnosisResult:
     t0 = time.perf_counter()
     timing: dict[str, float] = {}
@@ -205,7 +212,7 @@ def _run(
     records = load_study(directory)
     # The actuator lag becomes the simulated loop's discrete lag at the data's rate.
     wheel = choice.wheel(float(np.median([r.fs_hz for r in records])) if records else 1000.0)
-    prep = prepare_study(records, wheel)
+    prep = prepare_study(records, wheel, inertia_kgm2)
     base_mech = Mechanisms()
     model_baseline = None
     base_drift = 0.0
@@ -232,6 +239,11 @@ def _run(
     signal_names = [n for n in names if n != "drift"]
     sel = select(setup, signal_names, jobs=max(1, jobs or 1))
     timing["candidates"] = time.perf_counter() - t1
+    for what in sel.undone:
+        prep.limits.append(
+            f"time limit of the candidate stage ({engine.CANDIDATE_TIME_LIMIT_S:g} s; CPU "
+            f"time with one job) reached: {what}"
+        )
 
     stages.next("drift")
     t1 = time.perf_counter()
