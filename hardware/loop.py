@@ -167,13 +167,14 @@ class DeviceLoop:
         # Per cycle, s after its due time: the previous cycle's end, the sleep's return, the
         # command computed (health, sensors, glove, loop_command), the SYNC answered.
         trace = np.full((n_total, 4), np.nan) if self.trace else None
-        # No collection pauses inside a real-time trial (a full collection in a big process,
-        # such as a test runner's, takes hundreds of ms); collected at the trial's end.
-        gc_was_enabled = gc.isenabled()
-        if self.realtime:
-            gc.disable()
         self.drive.enable()
+        # No collection pauses inside a real-time trial (a full collection in a big process,
+        # such as a test runner's, takes hundreds of ms); collected at the trial's end. Only
+        # once the drive is enabled: a failed enable leaves the process as it was.
+        gc_was_enabled = gc.isenabled()
         try:
+            if self.realtime:
+                gc.disable()
             if self.pre_trial is not None:
                 self.pre_trial()
             self._last_cycle = self.clock()

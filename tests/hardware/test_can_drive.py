@@ -458,3 +458,21 @@ def test_cycle_time_over_the_virtual_bus(make_rig, capsys):
     )
     with capsys.disabled():
         print(line)
+
+
+def test_a_failed_enable_leaves_garbage_collection_on(make_rig, fast_protocol):
+    # A real-time trial pauses collection (DeviceLoop.run_trial); a drive that cannot be
+    # enabled must not leave it paused for the rest of the process.
+    import gc
+
+    from steerlab.hardware.loop import DeviceLoop
+    from steerlab.protocols.engine import LoopControl
+    from steerlab.protocols.session import build_plan
+
+    rig = make_rig(with_sim=False)
+    plan = build_plan(fast_protocol, 1)
+    loop = DeviceLoop(rig.drive, rig.drive.torque_sensor, glove=None, realtime=True)
+    assert gc.isenabled()
+    with pytest.raises(DriveEnableError):
+        next(loop.run_trial(plan.setup(plan.trials[0]), LoopControl()))
+    assert gc.isenabled()
