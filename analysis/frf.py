@@ -115,15 +115,7 @@ def smooth_log_spectrum(
     (and get the smooth value). Where the kernel holds too few points for the polynomial, the
     degree is lowered.
     """
-    f = np.asarray(f_hz, dtype=float)
-    v = np.asarray(power, dtype=float)
-    nu = np.broadcast_to(np.asarray(dof, dtype=float), v.shape)
-    ok = _smoothable(f, v, nu)
-    out = np.full(v.shape, np.nan)
-    if not np.any(ok):
-        return out
-    y = np.log(v[ok]) - (special.digamma(nu[ok] / 2) - np.log(nu[ok] / 2))
-    return np.exp(smoothing_matrix(f, nu, ok, decades, degree) @ y)
+    return smooth_log_spectrum_with_covariance(f_hz, power, dof, decades, degree, cov=False)[0]
 
 
 def _smoothable(f: np.ndarray, v: np.ndarray, nu: np.ndarray) -> np.ndarray:
@@ -173,14 +165,33 @@ def smoothed_log_covariance(
     magnitudes has variance ψ'(ν/2); different bands' values are independent). This is how
     uncertain a weight made from the smoothed spectrum is, which the arm fit's standard errors
     account for (docs/method-estimator.md)."""
+    log_cov = smooth_log_spectrum_with_covariance(f_hz, power, dof, decades, degree)[1]
+    assert log_cov is not None  # asked for (cov=True)
+    return log_cov
+
+
+def smooth_log_spectrum_with_covariance(
+    f_hz: np.ndarray,
+    power: np.ndarray,
+    dof: np.ndarray | float,
+    decades: float = DEFAULT_SMOOTHING_DECADES,
+    degree: int = DEFAULT_SMOOTHING_DEGREE,
+    *,
+    cov: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`smooth_log_spectrum` and :func:`smoothed_log_covariance` from one smoothing
+    matrix (the fit needs both, and the matrix is the costly part); ``cov=False``: no
+    covariance (None)."""
     f = np.asarray(f_hz, dtype=float)
     v = np.asarray(power, dtype=float)
     nu = np.broadcast_to(np.asarray(dof, dtype=float), v.shape)
     ok = _smoothable(f, v, nu)
     if not np.any(ok):
-        return np.full((len(f), len(f)), np.nan)
+        return np.full(v.shape, np.nan), (np.full((len(f), len(f)), np.nan) if cov else None)
     L = smoothing_matrix(f, nu, ok, decades, degree)
-    return (L * special.polygamma(1, nu[ok] / 2)) @ L.T
+    y = np.log(v[ok]) - (special.digamma(nu[ok] / 2) - np.log(nu[ok] / 2))
+    log_cov = (L * special.polygamma(1, nu[ok] / 2)) @ L.T if cov else None
+    return np.exp(L @ y), log_cov
 
 
 def drift_removed(x: np.ndarray, selection: PeriodSelection) -> np.ndarray:
@@ -412,8 +423,10 @@ def frequency_response(spectra: TrialSpectra | Sequence[TrialSpectra]) -> Freque
         q = np.where(usable, q, np.abs(s_tp_td) ** 2)
         H_comp = np.where(usable & np.isfinite(cross), H - s_tp_tp * cross / q, H)
         r = s_tp_tp * noise_td / q  # relative noise variance of S_TpTd
-        H_var_smooth = smooth_log_spectrum(exc.band_frequencies_hz, resid, dof) * s_tp_tp / q
-    log_cov = smoothed_log_covariance(exc.band_frequencies_hz, resid, dof)
+        smooth_resid, log_cov = smooth_log_spectrum_with_covariance(
+            exc.band_frequencies_hz, resid, dof
+        )
+        H_var_smooth = smooth_resid * s_tp_tp / q
     # log q scatters by 2r (|1 + x|² with x complex normal of variance r), independently of
     # the noise bins: the other half of the weights' own uncertainty.
     log_cov = log_cov + np.diag(np.where(np.isfinite(r), 2.0 * r, 0.0))
@@ -566,6 +579,16 @@ def group_frequency_response(
     H_var = (
         np.sum(np.abs(Hs - H) ** 2, axis=0) / (n * (n - 1)) if n > 1 else np.full(H.shape, np.nan)
     )
+    # One subject: no spread between subjects, but that subject's own noise still says how well
+    # each band is known (what the fit's weights and SEMs need).
+    var_smooth: np.ndarray | None
+    var_log_cov: np.ndarray | None
+    if n > 1:
+        var_smooth, var_log_cov = smooth_log_spectrum_with_covariance(
+            f0.frequencies_hz, H_var, 2.0 * (n - 1)
+        )
+    else:
+        var_smooth, var_log_cov = f0.H_variance_smooth, f0.H_variance_log_cov
     return GroupFrequencyResponse(
         frequencies_hz=f0.frequencies_hz,
         H=H,
@@ -581,17 +604,7 @@ def group_frequency_response(
         H_variance=H_var,
         bin_frequencies_hz=f0.bin_frequencies_hz,
         bin_weights=np.mean([r.bin_weights for r in responses], axis=0),
-        # One subject: no spread between subjects, but that subject's own noise still says
-        # how well each band is known (what the fit's weights and SEMs need).
-        H_variance_smooth=(
-            smooth_log_spectrum(f0.frequencies_hz, H_var, 2.0 * (n - 1))
-            if n > 1
-            else f0.H_variance_smooth
-        ),
+        H_variance_smooth=var_smooth,
         fs_hz=_common_rate([r.fs_hz for r in responses]),
-        H_variance_log_cov=(
-            smoothed_log_covariance(f0.frequencies_hz, H_var, 2.0 * (n - 1))
-            if n > 1
-            else f0.H_variance_log_cov
-        ),
+        H_variance_log_cov=var_log_cov,
     )
