@@ -16,7 +16,7 @@ import math
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import can
@@ -31,6 +31,7 @@ from steerlab.hardware.can import (
     SafetyConfig,
     TorqueSensorConfig,
 )
+from tests.hardware import can_wire
 
 EDS = Path(__file__).with_name("vendor_servo.eds")
 NODE = 3
@@ -42,13 +43,8 @@ MV_PER_NM = 200.0  # the amplifier on analog input 1: 200 mV per N·m of column 
 HAND_NM = 0.75  # a constant column torque from the hand (wheel side)
 
 
-def wait_for(predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return predicate()
+#: Polls until true, up to 5 s: a loaded test machine, not a slow node.
+wait_for = partial(can_wire.wait_for, timeout=5.0)
 
 
 # CiA 402 device control: the command a controlword gives (table "command coding").

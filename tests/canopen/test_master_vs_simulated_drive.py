@@ -11,8 +11,8 @@ from __future__ import annotations
 import math
 import time
 import uuid
-from collections.abc import Callable
 from dataclasses import replace
+from functools import partial
 
 import can
 import canopen
@@ -23,6 +23,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from steerlab.hardware.can import SimulatedDrive, State402, build_object_dictionary
 from steerlab.hardware.can.config import load_drive_config
 from steerlab.hardware.can.sim_node import SIMULATED_DRIVE_EDS
+from tests.hardware import can_wire
 from tests.helpers import ROOT
 
 NODE = 9
@@ -44,13 +45,8 @@ class Wheel:
         return self.angle, self.velocity, self.motor, 0.0
 
 
-def wait_for(predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return predicate()
+#: Polls until true, up to 5 s: a loaded test machine, not a slow node.
+wait_for = partial(can_wire.wait_for, timeout=5.0)
 
 
 def frames(bus: can.BusABC, timeout: float = 0.05, max_s: float = 0.5) -> list[can.Message]:
