@@ -8,7 +8,8 @@ Run it as ``python -m hardware.sim.lab --rig RIG.toml --channel NAME`` (the rig 
 simulated rig's: its ``[drive]``, ``[safety]`` and glove calibration). It prints one JSON line
 ``{"ready": true, "pty": ..., "channel": ..., "pid": ...}``, then answers one JSON line per
 command line on stdin (``{"op": "status"}``, ``{"op": "inject", "fault": NAME}``,
-``{"op": "close"}``); end of stdin closes it. :class:`LabProcess` is the parent's handle and
+``{"op": "collect"}``: a full garbage collection, timed, ``{"op": "close"}``); end of stdin
+closes it. :class:`LabProcess` is the parent's handle and
 :func:`host_rig_text` writes the host's rig file for it.
 
 The world behind the motor shaft is, by default, a wheel (Table 1's 0.3 kg·m²) held by a relaxed
@@ -24,6 +25,7 @@ person; nothing of the simulation runs in the loop's process.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import re
@@ -266,6 +268,12 @@ def main(argv: list[str] | None = None) -> int:
     from steerlab.hardware.realtime import tune_process
 
     lab = SimulatedLab(args.rig, args.channel, args.subject)
+    # The drive node answers each SYNC within the host's TPDO timeout (0.8 ms). A full garbage
+    # collection walks every object of the process (a subject's world: about 150 000) holding
+    # the GIL: 50-80 ms without an answer, and 20 unanswered SYNCs end the host's trial. What is
+    # built now lives as long as the process; frozen, collections walk only what comes later.
+    gc.collect()
+    gc.freeze()
     # Once built (seconds of CPU for a subject's world): the drive node answers each SYNC, so
     # its threads get what the host may have.
     tune_process()
@@ -297,6 +305,10 @@ def main(argv: list[str] | None = None) -> int:
                     t = time.monotonic()
                     lab.inject(cmd["fault"])
                     say({"t": t, "injected": cmd["fault"]})
+                elif op == "collect":
+                    t = time.perf_counter()
+                    gc.collect()
+                    say({"collect_ms": (time.perf_counter() - t) * 1e3})
                 elif op == "close":
                     say({"closed": True})
                     break

@@ -11,6 +11,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import can
+import canopen
 import numpy as np
 import pytest
 from scipy.linalg import expm
@@ -26,6 +27,7 @@ from steerlab.hardware.can import (
     State402,
     load_drive_config,
 )
+from steerlab.hardware.can.sim_node import SIMULATED_DRIVE_EDS
 from steerlab.hardware.interfaces import TorqueSensor, WheelDrive
 from tests.hardware.can_wire import wait_for
 
@@ -145,6 +147,54 @@ def test_implements_the_device_interfaces(make_rig):
     rig = make_rig()
     assert isinstance(rig.drive, WheelDrive)
     assert isinstance(rig.drive.torque_sensor, TorqueSensor)
+
+
+def test_enable_leaves_the_drive_in_the_drivers_synchronous_pdo_setup(make_rig):
+    """Whatever the drive ships with (the simulated one: TPDO1/TPDO2 event-driven, type 255,
+    with a 100 ms event timer), after enable() it has the set-up the driver wrote, as canopen's
+    own PdoMap reads it back, and behaves by it: nothing between SYNCs, one TPDO1 and one TPDO2
+    on each SYNC."""
+    rig = make_rig()
+    n = rig.cfg.node_id
+    monitor = can.Bus(interface="virtual", channel=rig.cfg.channel, receive_own_messages=False)
+    network = canopen.Network()
+    network.NOTIFIER_CYCLE = 0.05
+    network.connect(interface="virtual", channel=rig.cfg.channel, receive_own_messages=False)
+    node = canopen.RemoteNode(n, str(SIMULATED_DRIVE_EDS))
+    node.sdo.RESPONSE_TIMEOUT = 2.0  # a loaded machine, not a slow drive
+    network.add_node(node)
+    try:
+        rig.drive.enable()
+        node.tpdo.read()
+        node.rpdo.read()
+        tpdo, rpdo = node.tpdo, node.rpdo
+        assert [(tpdo[k].enabled, tpdo[k].trans_type) for k in (1, 2)] == [(True, 1), (True, 1)]
+        assert [v.index for v in tpdo[1]] == [0x6041, 0x6064, 0x6077]
+        assert [v.index for v in tpdo[2]] == [0x606C, 0x2000]
+        assert (rpdo[1].enabled, rpdo[1].trans_type) == (True, 1)
+        assert [v.index for v in rpdo[1]] == [0x6040, 0x6071]
+        assert [tpdo[k].enabled for k in (3, 4)] + [rpdo[k].enabled for k in (2, 3, 4)] == [
+            False
+        ] * 5
+
+        def pdos_seen(s: float) -> list[int]:
+            ids, end = [], time.monotonic() + s
+            while (m := monitor.recv(max(0.0, end - time.monotonic()))) is not None:
+                if 0x180 < m.arbitration_id < 0x500 and m.arbitration_id & 0x7F == n:
+                    ids.append(m.arbitration_id)
+            return ids
+
+        pdos_seen(0.05)  # what enable() left in the monitor's queue
+        assert pdos_seen(0.35) == []  # no event timer any more, no SYNC: silence
+        for _ in range(20):
+            rig.drive.sync()
+        seen = pdos_seen(0.2)
+        assert seen.count(0x180 + n) == 20 and seen.count(0x280 + n) == 20, seen
+        assert len(seen) == 40 + seen.count(0x200 + n)  # and nothing else but RPDO1s
+        assert rig.drive.missed_tpdo == 0
+    finally:
+        network.disconnect()
+        monitor.shutdown()
 
 
 def test_step_response_matches_the_analytic_solution(make_rig):

@@ -128,24 +128,40 @@ def test_pdo_mapping_rules_are_enforced(node):
     assert info.value.code == 0x06040042
 
 
-def test_pdos_only_in_operational_and_rpdo_applied_on_sync(node):
+def test_pdos_only_in_operational_and_rpdo_timing_by_transmission_type(node):
     sim, remote, network, monitor, plant = node
     sync = can.Message(arbitration_id=0x80, is_extended_id=False)
+
+    def pdos(*cob_ids: int) -> list[tuple[int, bytes]]:
+        return [f for f in frames(monitor) if f[0] in cob_ids]
+
     frames(monitor)
     monitor.send(sync)
     assert [f for f in frames(monitor) if f[0] != 0x709] == []  # pre-operational: silent
     remote.nmt.send_command(0x01)
+    # out of the box TPDO1 and TPDO2 are event-driven (255): they go out on entering
+    # OPERATIONAL (and every 100 ms, their event timer)
+    got = pdos(0x189, 0x289)
+    assert got[:2] == [(0x189, bytes.fromhex("40 02")), (0x289, bytes.fromhex("40 02") + u32(1024))]
     monitor.send(sync)
-    # out of the box TPDO3 (statusword) and TPDO4 (position) go out on every SYNC
-    got = [f for f in frames(monitor) if f[0] not in (0x000, 0x709)]
-    assert got == [(0x389, bytes.fromhex("40 02")), (0x489, u32(4096 // 4))]  # π/2 rad
-    # default RPDO1 = controlword only; it takes effect at the next SYNC, not on reception
+    # TPDO3 (statusword) and TPDO4 (position) go out on every SYNC
+    assert pdos(0x389, 0x489) == [(0x389, bytes.fromhex("40 02")), (0x489, u32(4096 // 4))]
+    # default RPDO1 = controlword, asynchronous (255): it acts at once, and the event-driven
+    # TPDO1 reports the new statusword without a SYNC
     monitor.send(can.Message(arbitration_id=0x209, data=b"\x06\x00", is_extended_id=False))
-    frames(monitor)
-    assert sim.state is State402.SWITCH_ON_DISABLED
-    monitor.send(sync)
+    got = pdos(0x189)
+    assert sim.state is State402.READY_TO_SWITCH_ON
+    assert got[0] == (0x189, bytes.fromhex("21 02"))
+    # made synchronous (type 1), RPDO1 takes effect at the next SYNC, not on reception
+    remote.nmt.send_command(0x80)
+    remote.sdo.download(0x1400, 2, b"\x01")
+    remote.nmt.send_command(0x01)
+    monitor.send(can.Message(arbitration_id=0x209, data=b"\x07\x00", is_extended_id=False))
     frames(monitor)
     assert sim.state is State402.READY_TO_SWITCH_ON
+    monitor.send(sync)
+    frames(monitor)
+    assert sim.state is State402.SWITCHED_ON
     assert sim.sync_count == 3 and len(plant.torques) == 3
 
 

@@ -52,6 +52,7 @@ def canopen_rig():
     network.NOTIFIER_CYCLE = 0.05
     network.connect(interface="virtual", channel=channel, receive_own_messages=False)
     remote = network.add_node(5, ObjectDictionary())
+    remote.sdo.RESPONSE_TIMEOUT = 2.0  # a loaded test machine, not a slow drive
     host = canopen.LocalNode(HOST, ObjectDictionary())
     network.add_node(host)
     yield sim, remote, host, network
