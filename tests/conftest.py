@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 from pathlib import Path
@@ -15,6 +16,19 @@ if str(ROOT) not in sys.path:
 
 from steerlab.protocols.protocol import load_protocol, parse_protocol  # noqa: E402
 from tests.helpers import fast_protocol_text, lenient_rig_text  # noqa: E402
+
+
+def pytest_collection_finish(session):
+    """Freeze what collection built (every test module, numpy, scipy, Qt, canopen's parsed EDS
+    files...) so that the collector stops walking it.
+
+    Many tests run a simulated drive node and its host in this one process, with heartbeat and
+    SDO deadlines of 100-300 ms. A full collection of a test process walks some hundred
+    thousand objects holding the GIL (80-117 ms measured), which in the lab would stall nobody:
+    there the drive is its own device and the loop process pauses the collector during a trial
+    (DeviceLoop.run_trial). Frozen, a collection walks only what the tests create later."""
+    gc.collect()
+    gc.freeze()
 
 
 @pytest.fixture

@@ -29,6 +29,7 @@ LENIENT_LIMITS = {
     "heartbeat_timeout_ms": "2000",
     "max_missed_tpdo": "1000",
     "host_heartbeat_timeout_ms": "100",  # the longest a rig file may set (docs/rig-config.md)
+    "sdo_timeout_s": "2.0",
 }
 
 

@@ -426,6 +426,7 @@ class CiA402Drive:
         # canopen Notifier competes with the reader for the bus.
         self._network = canopen.Network(bus)
         self._node = canopen.RemoteNode(n, ObjectDictionary())
+        self._node.sdo.RESPONSE_TIMEOUT = config.sdo_timeout_s
         self._network.add_node(self._node)
         self._send_lock = self._network.send_lock
         self._sdo_lock = threading.RLock()

@@ -158,6 +158,9 @@ class DriveConfig:
     tpdo_timeout_ms: float = 0.8
     max_missed_tpdo: int = 20
     state_timeout_s: float = 0.5
+    # How long the host waits for each SDO answer (canopen's own default, 0.3 s). A drive
+    # answers in milliseconds; a busy host may see the answer late.
+    sdo_timeout_s: float = 0.3
     velocity_unit: VelocityUnit = "counts_per_s"
     torque_sensor: TorqueSensorConfig = field(default_factory=TorqueSensorConfig)
     source: str = field(default=_PYTHON, compare=False)
@@ -341,6 +344,7 @@ def _validate(cfg: DriveConfig) -> None:
         )
     c.int_("max_missed_tpdo", 1)
     c.float_("state_timeout_s")
+    c.float_("sdo_timeout_s")
     c.choice("velocity_unit", ("counts_per_s", "rpm"))
     if not isinstance(cfg.safety, SafetyConfig):
         raise ConfigError(src, "safety", None, "expected a [safety] table")

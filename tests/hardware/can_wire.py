@@ -74,5 +74,6 @@ def node5_config(channel: str, **changes) -> DriveConfig:
         host_heartbeat_timeout_ms=100,
         loop_rate_hz=20.0,
         tpdo_timeout_ms=45.0,
+        sdo_timeout_s=2.0,  # a loaded machine answers late, not a slow drive
     )
     return replace(cfg, **changes)

@@ -88,6 +88,7 @@ def base_config(channel: str, **changes) -> DriveConfig:
         loop_rate_hz=20.0,
         tpdo_timeout_ms=45.0,
         state_timeout_s=0.2,
+        sdo_timeout_s=2.0,  # a loaded machine answers late, not a slow drive
     )
     return replace(cfg, **changes)
 
@@ -345,7 +346,9 @@ def test_wrong_rated_torque_in_rig_file_fails_enable(make_rig):
 
 
 def test_no_drive_on_the_bus(make_rig):
-    rig = make_rig(with_sim=False)
+    # canopen's 0.3 s per SDO, not the tests' generous 2 s: what is tested is that no answer
+    # ends enable() after the SDO timeout, not after a hang.
+    rig = make_rig(with_sim=False, sdo_timeout_s=0.3)
     t0 = time.monotonic()
     with pytest.raises(DriveEnableError, match="mode of operation.*no SDO answer"):
         rig.drive.enable()
@@ -375,7 +378,7 @@ def test_heartbeat_loss_detected_within_the_configured_time(make_rig):
 
 
 def test_drive_disappears(make_rig):
-    rig = make_rig(max_missed_tpdo=3)
+    rig = make_rig(max_missed_tpdo=3, sdo_timeout_s=0.3)  # the disable's SDO times out
     drive = rig.drive
     drive.enable()
     rig.sim.go_silent()
