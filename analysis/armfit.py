@@ -291,7 +291,7 @@ def _sampled(
             for i, n in enumerate(names):
                 dnum[i] = dnum[i] + a * P * d[n]
                 dden[i] = dden[i] + a * d[n] * (P / h - 1.0)
-    hd = num / den
+    hd = np.asarray(num / den)  # an array: there is at least one image (m = 0)
     return hd, [(dn * den - num * dd) / den**2 for dn, dd in zip(dnum, dden, strict=True)]
 
 
@@ -449,8 +449,8 @@ class _Problem:
         if self.fs_hz is None:
             d = _partials(p, self.s_bins)
             return np.array([np.sum(self.mix * d[n], axis=-1) for n in names]).T  # (K, n)
-        _, d = _sampled(p, self.s_bins, self.fs_hz, self.wheel_inertia, ALIAS_IMAGES, names)
-        return np.array([np.sum(self.mix * x, axis=-1) for x in d]).T
+        _, dl = _sampled(p, self.s_bins, self.fs_hz, self.wheel_inertia, ALIAS_IMAGES, names)
+        return np.array([np.sum(self.mix * x, axis=-1) for x in dl]).T
 
 
 def _variance(
@@ -669,13 +669,14 @@ def fit_arm_joint(
         xs = [_fit_own(p, I0, _grid_starts(p, I0))[0] for p in coarse]
     else:
         prev: list[np.ndarray | None] = [None] * len(probs)
-        best = (np.inf, 0.0, [])
+        best: tuple[float, float, list[np.ndarray]] = (np.inf, 0.0, [])
         for I in INERTIA_START_GRID:
             total, xi = 0.0, []
-            for k, p in enumerate(coarse):
-                n_grid = 2 if prev[k] is None else 1  # the neighbour's optimum is the likeliest
-                starts = _grid_starts(p, I)[:n_grid] + ([prev[k]] if prev[k] is not None else [])
-                x, c = _fit_own(p, I, starts, PROFILE_TOL)
+            for k, prob in enumerate(coarse):
+                near = prev[k]
+                n_grid = 2 if near is None else 1  # the neighbour's optimum is the likeliest
+                starts = _grid_starts(prob, I)[:n_grid] + ([near] if near is not None else [])
+                x, c = _fit_own(prob, I, starts, PROFILE_TOL)
                 xi.append(x)
                 total += c
             prev = list(xi)
@@ -758,7 +759,7 @@ def fit_arm_joint(
     cov_res = sigma2_all * A_inv
     have_var = all(pr.var is not None for pr in probs)
     if have_var:
-        v_all = np.concatenate([pr.var for pr in probs])  # type: ignore[misc]
+        v_all = np.concatenate([pr.var for pr in probs if pr.var is not None])  # have_var: all
         S = np.concatenate([v_all, v_all]) / 2.0  # complex error: half the variance in each part
         cov = cov_noise = A_inv @ (J.T @ ((W**2 * S)[:, None] * J)) @ A_inv
         method = "noise"

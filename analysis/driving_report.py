@@ -26,7 +26,7 @@ from __future__ import annotations
 import html
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -53,7 +53,7 @@ def _validators() -> list:
     return [SlidingWindowFRF(window_s=10.0), GripInformedEKF()]
 
 
-def static_compliance(tr: TrackedAdmittance | dict[str, np.ndarray]) -> np.ndarray:
+def static_compliance(tr: TrackedAdmittance | Mapping[str, np.ndarray]) -> np.ndarray:
     """1/k_i + 1/k_c per sample, rad/(N·m)."""
     p = tr.params if isinstance(tr, TrackedAdmittance) else tr
     return 1.0 / np.asarray(p["k_i"]) + 1.0 / np.asarray(p["k_c"])
@@ -128,14 +128,14 @@ class DrivingReport:
                     "drives": len(rms),
                 }
         for name in VALIDATORS:
-            vals = [d.lpv_vs_validator[name] for d in self.drives if name in d.lpv_vs_validator]
-            if vals:
+            pairs = [d.lpv_vs_validator[name] for d in self.drives if name in d.lpv_vs_validator]
+            if pairs:
                 out[f"lpv_vs_{name}"] = {
-                    "median_rms_log_k_i": float(np.median([v["rms_log_k_i"] for v in vals])),
+                    "median_rms_log_k_i": float(np.median([v["rms_log_k_i"] for v in pairs])),
                     "median_bias_k_i_percent": float(
-                        np.median([v["bias_k_i_percent"] for v in vals])
+                        np.median([v["bias_k_i_percent"] for v in pairs])
                     ),
-                    "drives": len(vals),
+                    "drives": len(pairs),
                 }
         return out
 

@@ -13,14 +13,23 @@ into one:
 Dask is optional (``pip install 'steerlab[dask]'``). The work sent to the workers is plain
 functions of plain data, so the results do not depend on where they ran (tested on a
 ``LocalCluster`` against the in-process run).
+
+Work that needs one large value in every task (the diagnosis's set-up: every trial's spectra)
+sends it once per worker, not once per task, through :func:`share` or :func:`sharing_pool`;
+the task gets it back with :func:`shared_value`.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import pickle
+import uuid
+import weakref
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 
 class SchedulerError(RuntimeError):
@@ -67,9 +76,77 @@ def executor_for(
         if cluster is not None:
             cluster.close()
         raise SchedulerError(f"--scheduler {scheduler!r}: no Dask scheduler there ({e})") from e
+    executor = client.get_executor()
+    _DASK_CLIENTS[executor] = client
     try:
-        yield client.get_executor()
+        yield executor
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+# The Dask client behind each executor executor_for made: share() scatters through it.
+_DASK_CLIENTS: weakref.WeakKeyDictionary[cf.Executor, Any] = weakref.WeakKeyDictionary()
+
+
+@dataclass(frozen=True)
+class Shared:
+    """A value that tasks find in their worker process's cache under ``key``; ``pickled``
+    brings it to a worker that does not have it yet (None: installed when the worker
+    started, by :func:`sharing_pool`)."""
+
+    key: str
+    pickled: bytes | None = None
+
+
+# One value per worker process, the latest: a diagnosis shares one set-up at a time, and a
+# long-lived Dask worker must not keep every study it ever saw.
+_WORKER_CACHE: dict[str, object] = {}
+
+
+def _install(key: str, value: object) -> None:
+    _WORKER_CACHE.clear()
+    _WORKER_CACHE[key] = value
+
+
+def share(executor: cf.Executor, value: object) -> object:
+    """A handle to pass to tasks on ``executor`` instead of ``value``; in the task,
+    :func:`shared_value` turns it back into the value.
+
+    On Dask (an executor of :func:`executor_for`) the value is scattered to every worker
+    once, and Dask hands the task the value itself. On any other executor the handle carries
+    the value pickled, and each worker process unpickles it once (tasks that find it in the
+    worker's cache skip that).
+    """
+    client = _DASK_CLIENTS.get(executor)
+    if client is not None:
+        return client.scatter(value, broadcast=True, hash=False)
+    return Shared(uuid.uuid4().hex, pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def sharing_pool(jobs: int, value: object) -> tuple[cf.ProcessPoolExecutor, Shared]:
+    """A pool of ``jobs`` processes that each hold ``value`` from their start, and the
+    handle that finds it there (nothing of the value travels with the tasks)."""
+    handle = Shared(uuid.uuid4().hex)
+    pool = cf.ProcessPoolExecutor(
+        max_workers=jobs, initializer=_install, initargs=(handle.key, value)
+    )
+    return pool, handle
+
+
+def shared_value(handle: object) -> Any:
+    """In a task: the value behind a handle of :func:`share` or :func:`sharing_pool`."""
+    if not isinstance(handle, Shared):
+        return handle  # Dask resolved its scattered value before calling the task
+    try:
+        return _WORKER_CACHE[handle.key]
+    except KeyError:
+        if handle.pickled is None:
+            raise RuntimeError(
+                "shared_value: this process was not started by sharing_pool and the handle "
+                "carries no value"
+            ) from None
+    value = pickle.loads(handle.pickled)
+    _install(handle.key, value)
+    return value

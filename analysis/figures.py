@@ -196,11 +196,15 @@ def parameter_boxplots(res: StudyResults) -> Figure:
     for ax, name in zip(axes, FREE_PARAMETERS, strict=False):
         data, sems, wild = [], [], []
         for cond in conds:
-            rows = [r for r in res.study.subject_conditions if r.condition == cond and r.fit]
-            ok = [r for r in rows if name not in r.fit.unidentified()]
-            data.append([getattr(r.fit.params, name) for r in ok])
-            sems.append([r.fit.sems.get(name, np.nan) for r in ok])
-            wild.append(len(rows) - len(ok))
+            fits = [
+                r.fit
+                for r in res.study.subject_conditions
+                if r.condition == cond and r.fit is not None
+            ]
+            ok = [f for f in fits if name not in f.unidentified()]
+            data.append([getattr(f.params, name) for f in ok])
+            sems.append([f.sems.get(name, np.nan) for f in ok])
+            wild.append(len(fits) - len(ok))
         _boxes_plain(ax, data, conds, colours)
         for i, (vals, ss) in enumerate(zip(data, sems, strict=True), 1):
             v, s = np.asarray(vals, float), np.asarray(ss, float)

@@ -76,6 +76,8 @@ DEFAULT_EXCLUSIONS: Mapping[str, str] = MappingProxyType({"RT": RT_EXCLUSION_REA
 
 OutOfRange = Literal["clip", "extrapolate", "raise"]
 ZeroPlacement = Literal["auto", "split", "second_order"]
+Structure = Literal["split", "second_order"]  # the de Caigny structure resolved from "auto"
+ZeroRank = Literal["slow", "fast"]
 METHODS: tuple[str, ...] = ("de_caigny", "physical")
 
 
@@ -128,7 +130,7 @@ def _zeros_are_real(parameters: Mapping[str, float]) -> bool:
     return (bi + bc) ** 2 - 4.0 * I * (ki + kc) >= 0.0
 
 
-def _first_order_zero_rank(parameters: Mapping[str, float]) -> str:
+def _first_order_zero_rank(parameters: Mapping[str, float]) -> ZeroRank:
     """Which real zero belongs with the contact pole: 'slow' or 'fast' (nearer on a log scale)."""
     _, _, _, bc, kc = _unpack(parameters)
     pole = kc / bc
@@ -498,8 +500,8 @@ _ENTRY_UNITS_SECOND = {
 
 def decompose(
     parameters: Mapping[str, float],
-    zeros: Literal["split", "second_order"],
-    first_order_zero: Literal["slow", "fast"] | None = None,
+    zeros: Structure,
+    first_order_zero: ZeroRank | None = None,
 ) -> dict[str, float]:
     """The free state-space entries and gain of one local model (see the module docstring).
 
@@ -533,7 +535,7 @@ def decompose(
 
 def resolve_zero_placement(
     points: Sequence[OperatingPoint], zeros: ZeroPlacement = "auto"
-) -> tuple[str, str | None, str]:
+) -> tuple[Structure, ZeroRank | None, str]:
     """(structure, first-order zero rank or None, reason) for a set of operating points.
 
     Raises :class:`StructureError` when "split" is asked for and does not exist.
@@ -544,7 +546,7 @@ def resolve_zero_placement(
         raise ValueError(f"zeros must be auto, split or second_order, got {zeros!r}")
     complex_at = [p.condition for p in points if not _zeros_are_real(p.parameters)]
     problem = None
-    rank = None
+    rank: ZeroRank | None = None
     if complex_at:
         problem = (
             f"the zeros are complex at {complex_at}, so no real first-order subsystem with one "
@@ -588,8 +590,8 @@ class DeCaignyLPV(_InterpolatedLPV):
         table: Mapping[str, np.ndarray],
         order: int,
         out_of_range: OutOfRange,
-        structure: str,
-        first_order_zero: str | None,
+        structure: Structure,
+        first_order_zero: ZeroRank | None,
         structure_reason: str,
     ) -> None:
         super().__init__(points, table, order, out_of_range)
@@ -609,7 +611,7 @@ class DeCaignyLPV(_InterpolatedLPV):
     ) -> DeCaignyLPV:
         pts = as_operating_points(points)
         structure, rank, reason = resolve_zero_placement(pts, zeros)
-        local = [decompose(p.parameters, structure, rank) for p in pts]  # type: ignore[arg-type]
+        local = [decompose(p.parameters, structure, rank) for p in pts]
         table = {k: np.array([e[k] for e in local]) for k in local[0]}
         return cls(pts, table, order, out_of_range, structure, rank, reason)
 
@@ -728,7 +730,7 @@ class FitTable:
     methods: tuple[str, ...]
     order: int
     excluded: dict[str, str]
-    structure: str | None = None  # de Caigny structure, when that method ran
+    structure: Structure | None = None  # de Caigny structure, when that method ran
     structure_reason: str | None = None
 
     def row(self, condition: str) -> FitRow:
@@ -838,7 +840,7 @@ class LeaveOneOutReport:
     order: int
     excluded: dict[str, str]
     not_left_out: dict[str, str]  # the end points, and why they are not predicted
-    structure: str | None = None
+    structure: Structure | None = None
 
     def get(self, method: str, condition: str) -> LeaveOneOutResult:
         for r in self.results:
@@ -876,10 +878,10 @@ def leave_one_out(
     if len(included) < 3:
         raise ValueError(f"leave-one-out needs ≥ 3 operating points, got {len(included)}")
     grid = default_frequencies_hz() if frequencies_hz is None else np.asarray(frequencies_hz, float)
-    structure = None
+    structure: Structure | None = None
     if "de_caigny" in methods:
         structure = resolve_zero_placement(included, zeros)[0]
-    zeros_used: ZeroPlacement = structure or zeros  # type: ignore[assignment]
+    zeros_used: ZeroPlacement = structure or zeros
     full = {m: build_lpv(included, m, order=order, zeros=zeros_used) for m in methods}
     ends = {
         included[0].condition: "lowest μ: predicting it would be extrapolation",

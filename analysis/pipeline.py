@@ -31,6 +31,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -392,10 +393,16 @@ def quantity_statistics(
         if col not in table.columns:
             errors.append(f"no values of {col} (no successful fits?)")
         else:
-            kw = dict(dv=col, within="condition", subject="subject", conditions=list(conditions))
+            conds = list(conditions)
             try:
-                anova = rm_anova(table, alpha=alpha, **kw)
-                pw = pairwise_tests(table, alpha=alpha, **kw)
+                anova = rm_anova(
+                    table, dv=col, within="condition", subject="subject", conditions=conds,
+                    alpha=alpha,
+                )  # fmt: skip
+                pw = pairwise_tests(
+                    table, dv=col, within="condition", subject="subject", conditions=conds,
+                    alpha=alpha,
+                )  # fmt: skip
             except ValueError as e:
                 errors.append(f"RM-ANOVA/pairwise: {e}")
             try:
@@ -535,8 +542,8 @@ def leave_one_out_vaf(
             segs = spectra.get((s, p.condition))
             if segs is None:
                 continue
-            v[s] = _vaf(segs, lambda f, mdl=fold, mu=p.mu_N: mdl.frequency_response(mu, f))
-            v_in[s] = _vaf(segs, lambda f, mdl=full, mu=p.mu_N: mdl.frequency_response(mu, f))
+            v[s] = _vaf(segs, partial(fold.frequency_response, p.mu_N))
+            v_in[s] = _vaf(segs, partial(full.frequency_response, p.mu_N))
         out.append(LeaveOneOutVAF(m, p.condition, v, v_in))
     return out
 
@@ -853,7 +860,7 @@ def _vaf_lowest_in_rt(
     if q is None or q.anova is None or q.pairwise is None or "RT" not in conditions:
         return _not_computed("vaf_lowest_in_rt", paper, test, "no VAF statistics or no RT")
     means = _means(q) or {}
-    lowest = min(means, key=means.get) if means else None
+    lowest = min(means, key=means.__getitem__) if means else None
     others = [q.pairwise.get("RT", c) for c in conditions if c != "RT"]
     not_sig = [c.b for c in others if not (c.p_corrected < alpha and c.mean_difference < 0)]
     return Check(
@@ -889,7 +896,8 @@ def _lpv_checks(lpv: LPVAnalysis | None, loo_vaf: Sequence[LeaveOneOutVAF]) -> l
         "median over subjects of the time-domain VAF > 80 % with BT12, BT8 left out, both methods"
     )
     wanted = [(m, c) for m in METHODS for c in ("BT12", "BT8")]
-    if not all(k in med and med[k] is not None for k in wanted):
+    got = {k: v for k in wanted if (v := med.get(k)) is not None}
+    if len(got) < len(wanted):
         out.append(_not_computed("loo_bt12_bt8", paper, test, "BT12 or BT8 not left out"))
     else:
         out.append(
@@ -897,8 +905,8 @@ def _lpv_checks(lpv: LPVAnalysis | None, loo_vaf: Sequence[LeaveOneOutVAF]) -> l
                 "loo_bt12_bt8",
                 paper,
                 test,
-                all(med[k] > 80.0 for k in wanted),
-                {f"{m}/{c}": med[(m, c)] for m, c in wanted},
+                all(v > 80.0 for v in got.values()),
+                {f"{m}/{c}": v for (m, c), v in got.items()},
             )
         )
     paper = (
@@ -906,8 +914,8 @@ def _lpv_checks(lpv: LPVAnalysis | None, loo_vaf: Sequence[LeaveOneOutVAF]) -> l
         "force, is left out."
     )
     test = "median VAF with BT5 left out (de Caigny, the paper's method) < 80 %"
-    k = ("de_caigny", "BT5")
-    if med.get(k) is None:
+    bt5 = med.get(("de_caigny", "BT5"))
+    if bt5 is None:
         out.append(_not_computed("loo_bt5_fails", paper, test, "BT5 not left out"))
     else:
         out.append(
@@ -915,7 +923,7 @@ def _lpv_checks(lpv: LPVAnalysis | None, loo_vaf: Sequence[LeaveOneOutVAF]) -> l
                 "loo_bt5_fails",
                 paper,
                 test,
-                med[k] < 80.0,
+                bt5 < 80.0,
                 {f"{m}/BT5": med.get((m, "BT5")) for m in METHODS},
                 "where the arm parameters vary smoothly with grip force (as in Steerlab's "
                 "simulated drivers) an interpolation is expected to predict BT5; 'differs' "
@@ -1028,7 +1036,7 @@ class StudyResults:
         d: dict[str, Any] = {"mode": opt.inertia, "held_value_kgm2": None}
         if opt.inertia == "fixed":
             d["held_value_kgm2"] = opt.I_i
-        per = {}
+        per: dict[str, dict[str, Any]] = {}
         for name, j in self.study.inertia.items():
             sens = []
             for lab, fit in j.by_label().items():

@@ -764,14 +764,18 @@ def _truth_section(res: StudyResults) -> str:
         return ""
     rows = []
     for cond in res.conditions:
-        cells = [r for r in res.study.subject_conditions if r.condition == cond and r.fit]
+        cells = [
+            (r.subject, r.fit)
+            for r in res.study.subject_conditions
+            if r.condition == cond and r.fit is not None
+        ]
         row = [_e(cond)]
         for n in ("I_i", "b_i", "k_i", "b_c", "k_c"):
             est, tru = [], []
-            for r in cells:
-                t = res.truth(r.subject, cond)
+            for subject, fit in cells:
+                t = res.truth(subject, cond)
                 if t and n in t:
-                    est.append(getattr(r.fit.params, n))
+                    est.append(getattr(fit.params, n))
                     tru.append(t[n])
             if not est:
                 row.append("–")
@@ -938,7 +942,8 @@ def _condition_table(res: StudyResults) -> str:
 def _table2(res: StudyResults) -> str:
     if res.lpv is None:
         return f'<h2 id="table2">Table 2</h2><p>No LPV model: {_e(res.lpv_error)}</p>'
-    order = [c for c in ("PT", "BT5", "BT8", "BT12", "BT18", "RT") if c in res.conditions]
+    paper_order = ("PT", "BT5", "BT8", "BT12", "BT18", "RT")
+    order: list[str] = [c for c in paper_order if c in res.conditions]
     order += [c for c in res.conditions if c not in order]
     rows_by = {r.condition: r for r in res.lpv.table.rows}
     header = ["FIT%"] + [_e(c) for c in order]

@@ -217,7 +217,10 @@ class SubjectConditionResult:
 
     def row(self) -> dict:
         """One flat row for tables and statistics."""
-        row = {"subject": self.subject, "condition": self.condition}
+        row: dict[str, str | float | int | None] = {
+            "subject": self.subject,
+            "condition": self.condition,
+        }
         if self.fit is not None:
             d = self.fit.to_dict()
             row.update(self.fit.params.to_dict())

@@ -156,16 +156,19 @@ def _cmd_stop(a: argparse.Namespace) -> int:
 
 def _cmd_diagnose(a: argparse.Namespace) -> int:
     from steerlab.analysis.diagnosis import run_diagnosis
+    from steerlab.analysis.executors import executor_for
 
-    result = run_diagnosis(
-        a.dir,
-        a.out,
-        jobs=a.jobs,
-        progress=Progress("diagnose"),
-        model=a.model,
-        rig_model=a.rig_model,
-        nominal_wheel=a.nominal_wheel,
-    )
+    with executor_for(a.scheduler, a.jobs) as ex:
+        result = run_diagnosis(
+            a.dir,
+            a.out,
+            jobs=a.jobs,
+            progress=Progress("diagnose"),
+            model=a.model,
+            rig_model=a.rig_model,
+            nominal_wheel=a.nominal_wheel,
+            executor=ex,
+        )
     print(result.summary())
     return 0
 
@@ -301,7 +304,9 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("diagnose", help="find what the simulation gets wrong on measured data")
     d.add_argument("dir")
     d.add_argument("--out", required=True)
-    d.add_argument("--jobs", type=int, default=1)
+    d.add_argument("--jobs", type=int, default=1, help="worker processes for the candidates' "
+                   "fits (default 1)")  # fmt: skip
+    d.add_argument("--scheduler", help=SCHEDULER_HELP)
     d.add_argument("--model", help="model.toml of an earlier diagnosis: its mechanisms become "
                    "the baseline")  # fmt: skip
     w = d.add_mutually_exclusive_group()

@@ -25,6 +25,7 @@ import shutil
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import nullcontext
 from pathlib import Path
 
 from steerlab.benchmarks.machine import machine
@@ -168,6 +169,7 @@ def main(argv: list[str]) -> dict:
     ap.add_argument("--seeds", type=int, default=None, help="studies per grid point")
     ap.add_argument("--nulls", type=int, default=None, help="null studies")
     ap.add_argument("--jobs", type=int, default=1, help="studies diagnosed in parallel")
+    ap.add_argument("--scheduler", help="Dask scheduler address, or local[:N] (studies on Dask)")
     ap.add_argument("--only", nargs="*", help="mechanisms to run (default: all)")
     ap.add_argument("--out", help="also write every case's result to this JSON file")
     a = ap.parse_args(argv)
@@ -184,7 +186,12 @@ def main(argv: list[str]) -> dict:
     cases += [(None, 0.0, 5000 + s, 1) for s in range(nulls)]
     t0 = time.perf_counter()
     results: list[dict] = []
-    with ProcessPoolExecutor(max_workers=max(1, a.jobs)) as ex:
+    from steerlab.analysis.executors import executor_for
+
+    with (
+        executor_for(a.scheduler, a.jobs) as dask,
+        nullcontext(dask) if dask else ProcessPoolExecutor(max_workers=max(1, a.jobs)) as ex,
+    ):
         for r in ex.map(run_case, cases):
             results.append(r)
             if a.out:  # as it goes: a long run that is stopped keeps what it did

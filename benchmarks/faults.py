@@ -121,6 +121,21 @@ class _TinyDisk:
             subprocess.run(["umount", "-l", str(self.path)], capture_output=True)
 
 
+class _FullDiskWriter(SessionWriter):
+    """The session writer; for the "writer" fault, once ``failing`` is set every write-out
+    fails as on a full disk (ENOSPC), and the first failure's time is kept."""
+
+    failing = False
+    first_failure: float | None = None
+
+    def _write_out(self) -> None:
+        if self.failing:
+            if self.first_failure is None:
+                self.first_failure = time.monotonic()
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        super()._write_out()
+
+
 def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None) -> dict:
     lab = LabProcess()
     rig_path = tmp / f"host-{lab.channel}.toml"
@@ -144,7 +159,7 @@ def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None)
     try:
         plan = build_plan(parse_protocol(PROTOCOL, "faults.toml"), 1)
         eng = SessionEngine(plan, loop)
-        writer = SessionWriter(path)
+        writer = _FullDiskWriter(path)
         eng.subscribe(writer)
         syncs0 = lab.status()["enabled_syncs"]
         fired = threading.Event()
@@ -160,15 +175,13 @@ def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None)
                 loop.inject(what)  # its time comes back in loop.injected
             elif where == "kill":
                 info["t"] = time.monotonic()
-                os.kill(loop._proc.pid, signal.SIGKILL)
+                pid = loop._proc.pid
+                assert pid is not None  # the loop process runs the session
+                os.kill(pid, signal.SIGKILL)
             elif where == "writer":
-
-                def failing() -> None:
-                    info.setdefault("t", time.monotonic())
-                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-                writer._write_out = failing
+                writer.failing = True
             elif where == "disk":
+                assert disk is not None  # made above for this fault
                 disk.fill()  # another program fills the disk: full from now
                 info["t"] = time.monotonic()
             elif where == "engine":
@@ -182,6 +195,8 @@ def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None)
 
         eng.subscribe(on)
         eng.run()
+        if writer.first_failure is not None:
+            info.setdefault("t", writer.first_failure)
         loop_samples = loop.trial_stats().get("samples")
         t_inject = info.get("t", loop.injected.get(what))
     finally:

@@ -21,6 +21,7 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Generator
 from dataclasses import replace
 from pathlib import Path
 
@@ -105,7 +106,12 @@ def with_gui(
         # polling loop would add its own cost to the Qt thread's CPU time.
         loop, check = QEventLoop(), QTimer()
         end = time.monotonic() + limit_s
-        check.timeout.connect(lambda: (cond() or time.monotonic() > end) and loop.quit())
+
+        def poll() -> None:
+            if cond() or time.monotonic() > end:
+                loop.quit()
+
+        check.timeout.connect(poll)
         check.start(50)
         if not cond():
             loop.exec()
@@ -161,6 +167,8 @@ def frame_cost(protocol, out: Path, frames: int = 300) -> dict:
     from steerlab.protocols.session import build_plan
 
     app = QApplication.instance()
+    if app is None:
+        raise RuntimeError("frame_cost: make the QApplication first (_qt_app)")
     plan = build_plan(protocol, 1)
     spec = plan.trials[0]
     setup = plan.setup(spec)
@@ -174,7 +182,8 @@ def frame_cost(protocol, out: Path, frames: int = 300) -> dict:
         n += len(b["time_s"])
         if n >= need:
             break
-    gen.close()
+    if isinstance(gen, Generator):  # as every loop's run_trial is (protocols/engine.py)
+        gen.close()  # the loop's finalizer: zero torque
     rig.close()
     win = ExperimenterWindow(protocol, out / "frame_cost")
     win.show()
@@ -200,14 +209,14 @@ def frame_cost(protocol, out: Path, frames: int = 300) -> dict:
     refresh, paint = [], []
     for k in range(frames):
         push_until(10.0 + 0.02 * (k + 1))
-        a = time.thread_time()
+        t0 = time.thread_time()
         win.plots.refresh()
-        b = time.thread_time()
+        t1 = time.thread_time()
         app.processEvents()  # the scene's dirty region, then the paint event it posts
         app.processEvents()
-        c = time.thread_time()
-        refresh.append(b - a)
-        paint.append(c - b)
+        t2 = time.thread_time()
+        refresh.append(t1 - t0)
+        paint.append(t2 - t1)
     frame = np.add(refresh, paint)
     vb = win.plots.plots[0].getViewBox()
     res = {

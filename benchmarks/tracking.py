@@ -26,7 +26,7 @@ import argparse
 import json
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +45,7 @@ from steerlab.hardware.sim.world import TRUTH_CHANNELS, WorldConfig
 from steerlab.protocols.engine import LoopControl
 from steerlab.protocols.protocol import Protocol, load_protocol
 from steerlab.protocols.records import TrialRecord
-from steerlab.protocols.session import build_plan
+from steerlab.protocols.session import ConditionSchedule, build_plan
 
 ROOT = Path(__file__).resolve().parents[1]
 PROTOCOL = ROOT / "protocols" / "tracking.toml"
@@ -73,7 +73,7 @@ def simulate_subject(
         setup = plan.setup(spec)
         blocks = list(rig.batch_loop().run_trial(setup, LoopControl()))
         d = {k: np.concatenate([b[k] for b in blocks]) for k in blocks[0]}
-        attrs = {"run_in_s": protocol.trial.run_in_s}
+        attrs: dict[str, float | str] = {"run_in_s": protocol.trial.run_in_s}
         if setup.schedule is not None:
             attrs["schedule"] = json.dumps(setup.schedule.to_dict())
         out.append(
@@ -122,6 +122,13 @@ def run_subject(protocol: Protocol, number: int, seed: int, estimators=None) -> 
     return {"calibration": cal, "results": results}
 
 
+def simulated_truth(trial: TrackingTrial) -> tuple[ConditionSchedule, Mapping[str, np.ndarray]]:
+    """(schedule, true parameters) of a simulated time-varying trial."""
+    if trial.schedule is None or trial.truth is None:
+        raise ValueError(f"trial {trial.label!r}: no schedule or truth (not simulated here?)")
+    return trial.schedule, trial.truth
+
+
 def lpv_ok(
     trial: TrackingTrial, cal: Calibration, steps: list[StepSettling], tol: float = 0.15
 ) -> list[bool]:
@@ -129,10 +136,13 @@ def lpv_ok(
     about the new task (its k_i at the true grip mean within ±tol of the true k_i at the
     segment's end)? Where it is not, no grip-based tracker can be right at once; the
     perturbation must correct it."""
+    grip = trial.truth_grip
+    if grip is None:
+        raise ValueError(f"trial {trial.label!r}: no true grip mean (not simulated here?)")
     out = []
     for st in steps:
         end = int(round((st.time_s + st.segment_s) * trial.fs_hz)) - 1
-        mu = trial.truth_grip[end]
+        mu = grip[end]
         out.append(abs(math.log(cal.prior(mu)[1] / st.k_i_to)) <= math.log(1 + tol))
     return out
 
@@ -241,8 +251,9 @@ def figure(result: dict, path: Path) -> None:
     }
     for ax, r in zip(axes[:, 0], res, strict=True):
         tr: TrackingTrial = r["trial"]
+        sch, truth = simulated_truth(tr)
         t = tr.time_s
-        ax.plot(t, tr.truth["k_i"], color="k", lw=2.2, label="truth")
+        ax.plot(t, truth["k_i"], color="k", lw=2.2, label="truth")
         for n, trk in r["tracks"].items():
             k = np.where(trk.valid, trk.params["k_i"], np.nan)
             sc = r["scores"][n]
@@ -254,7 +265,6 @@ def figure(result: dict, path: Path) -> None:
         ax.set_yscale("log")
         ax.set_xlim(SCORE_FROM_S - 5, t[-1])
         ax.set_ylabel("k_i (N·m/rad)")
-        sch = tr.schedule
         ax.set_title(f"{tr.label}: {sch.name} ({sch.transition})", fontsize=10)
         lo = SCORE_FROM_S - 5
         for k0, c in zip(sch.starts, sch.conditions, strict=True):

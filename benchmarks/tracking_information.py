@@ -20,7 +20,7 @@ from steerlab.analysis.tracking import Calibration, TrackingTrial
 from steerlab.analysis.tracking.base import TRACKED
 from steerlab.analysis.tracking.kalman import X_D, EKFConfig, KalmanCore
 from steerlab.benchmarks.machine import machine
-from steerlab.benchmarks.tracking import PROTOCOL, simulate_subject
+from steerlab.benchmarks.tracking import PROTOCOL, simulate_subject, simulated_truth
 from steerlab.protocols.protocol import load_protocol
 
 TIMES_S = (0.25, 0.5, 1.0, 2.0, 4.0)
@@ -36,8 +36,9 @@ def segments(
     core = KalmanCore(cal, trial.fs_hz, FIXED)
     core.coef[:] = 0.0  # the prior is a constant polynomial: the truth, set per sample below
     fs = trial.fs_hz
-    truth = np.stack([trial.truth[p] for p in TRACKED], axis=1)
-    starts = {int(s + fs) for s in trial.schedule.starts[1:]}
+    schedule, true_params = simulated_truth(trial)
+    truth = np.stack([true_params[p] for p in TRACKED], axis=1)
+    starts = {int(s + fs) for s in schedule.starts[1:]}
     marks = {s + int(t * fs): t for s in starts for t in TIMES_S}
     rows = []
     for k in range(trial.n):

@@ -60,6 +60,7 @@ from steerlab.analysis.diagnosis.simulate import (
     reconstruct_remnant,
     simulated_spectra,
 )
+from steerlab.analysis.executors import share, shared_value, sharing_pool
 from steerlab.hardware.sim.mechanisms import Mechanisms
 from steerlab.hardware.sim.physiology import NOMINAL, ArmParams
 
@@ -392,15 +393,6 @@ def judge(results: Sequence[CandidateResult], held_out: bool) -> None:
 
 
 # -- parallel evaluation ------------------------------------------------------------------------
-_WORKER_SETUP: Setup | None = None
-
-
-def _init_worker(setup: Setup) -> None:
-    global _WORKER_SETUP
-    _limit_threads()
-    _WORKER_SETUP = setup
-
-
 def _limit_threads() -> AbstractContextManager:
     """One BLAS thread while in effect (as a context manager; called bare, for good).
 
@@ -415,9 +407,11 @@ def _limit_threads() -> AbstractContextManager:
         return nullcontext()
 
 
-def _worker_eval(current: Current, name: str, step: int) -> CandidateResult:
-    assert _WORKER_SETUP is not None
-    return evaluate_candidate(_WORKER_SETUP, current, name, step)
+def _worker_eval(setup: object, current: Current, name: str, step: int) -> CandidateResult:
+    """One candidate in a worker; ``setup``: the handle of :mod:`analysis.executors` that
+    brings the set-up once per worker (a Dask worker has no initializer to install it)."""
+    with _limit_threads():
+        return evaluate_candidate(shared_value(setup), current, name, step)
 
 
 @dataclass
@@ -442,13 +436,16 @@ def select(
     jobs: int = 1,
     progress: Progress | None = None,
     time_limit_s: float | None = None,
+    executor: cf.Executor | None = None,
 ) -> Selection:
     """Greedy forward selection (module docstring). ``time_limit_s``: the candidate stage's
-    limit (default :data:`CANDIDATE_TIME_LIMIT_S`, read at call time; ``math.inf``: none)."""
+    limit (default :data:`CANDIDATE_TIME_LIMIT_S`, read at call time; ``math.inf``: none).
+    ``executor``: where the candidates are evaluated (any ``concurrent.futures.Executor``,
+    Dask's included); else ``jobs`` processes of our own, or this process."""
     pool = [c.name for c in CANDIDATES] if names is None else list(names)
     if time_limit_s is None:
         time_limit_s = CANDIDATE_TIME_LIMIT_S
-    clock = time.process_time if jobs <= 1 else time.monotonic
+    clock = time.process_time if jobs <= 1 and executor is None else time.monotonic
     deadline = clock() + time_limit_s
     undone: list[str] = []
 
@@ -458,11 +455,12 @@ def select(
     current = make_current(setup, setup.spec(), setup.base)
     steps: list[list[CandidateResult]] = []
     retained: list[CandidateResult] = []
-    executor = None
-    if jobs > 1:
-        executor = cf.ProcessPoolExecutor(
-            max_workers=jobs, initializer=_init_worker, initargs=(setup,)
-        )
+    own_pool = executor is None and jobs > 1
+    shared: object = None
+    if own_pool:
+        executor, shared = sharing_pool(jobs, setup)
+    elif executor is not None:
+        shared = share(executor, setup)
     try:
         for step in range(1, MAX_MECHANISMS + 1):
             remaining = [n for n in pool if n not in current.spec.names]
@@ -483,12 +481,19 @@ def select(
                 progress(f"step {step}: {len(remaining)} candidates")
             results: list[CandidateResult] = []
             if executor is not None:
-                futs = {executor.submit(_worker_eval, current, n, step): n for n in remaining}
+                futs = {
+                    executor.submit(_worker_eval, shared, current, n, step): n for n in remaining
+                }
                 wait = max(deadline - clock(), 0.0) if math.isfinite(deadline) else None
                 done, pending = cf.wait(futs, timeout=wait)
                 results = [f.result() for f in futs if f in done]
                 if pending:
-                    _abandon(executor)
+                    # Not started: cancelled; already running on an executor we were given:
+                    # left to finish, unwanted (only our own pool's workers are ours to stop).
+                    for f in pending:
+                        f.cancel()
+                    if own_pool:
+                        _abandon(executor)
                     executor = None
                     names_left = ", ".join(futs[f] for f in futs if f in pending)
                     undone.append(f"step {step}: {names_left} not evaluated")
@@ -510,7 +515,7 @@ def select(
             retained.append(best)
             current = Current(best.fit.spec, best.fit, best.fold_x, best.fold_cost)
     finally:
-        if executor is not None:
+        if own_pool and executor is not None:
             executor.shutdown()
     final_spec = current.spec
     final = current.fit

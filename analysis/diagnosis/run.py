@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import json
 import math
 import time
@@ -178,6 +179,7 @@ def run_diagnosis(
     rig_model: str | Path | None = None,
     nominal_wheel: bool = False,
     inertia_kgm2: float | None = None,
+    executor: cf.Executor | None = None,
 ) -> DiagnosisResult:
     """Diagnose the session files in ``directory``; write diagnosis.json, index.html and
     model.toml into ``out`` (unless None). ``model``: a model file whose mechanisms become the
@@ -185,11 +187,13 @@ def run_diagnosis(
     check's rig.json, the wheel to simulate; ``nominal_wheel``: the nominal wheel even where
     the session files record a measured one; neither: the measured wheel the files record, if
     any (docs/diagnosis.md: "The wheel"). ``inertia_kgm2``: hold the arm inertia at this value
-    (default: one per subject, fitted from the data)."""
+    (default: one per subject, fitted from the data). ``executor``: where the candidates'
+    fits run (any ``concurrent.futures.Executor``: Dask's from ``--scheduler``); without one,
+    ``jobs`` local processes."""
     with _limit_threads():
         return _run(
             directory, out, jobs, progress, model, candidates, rig_model, nominal_wheel,
-            inertia_kgm2,
+            inertia_kgm2, executor,
         )  # fmt: skip
 
 
@@ -203,6 +207,7 @@ def _run(
     rig_model: str | Path | None = None,
     nominal_wheel: bool = False,
     inertia_kgm2: float | None = None,
+    executor: cf.Executor | None = None,
 ) -> DiagnosisResult:
     t0 = time.perf_counter()
     timing: dict[str, float] = {}
@@ -237,7 +242,7 @@ def _run(
     stages.next("candidates")
     t1 = time.perf_counter()
     signal_names = [n for n in names if n != "drift"]
-    sel = select(setup, signal_names, jobs=max(1, jobs or 1))
+    sel = select(setup, signal_names, jobs=max(1, jobs or 1), executor=executor)
     timing["candidates"] = time.perf_counter() - t1
     for what in sel.undone:
         prep.limits.append(

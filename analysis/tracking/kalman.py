@@ -386,9 +386,10 @@ class KalmanCore:
     def run_arrays(self, tp, td, theta, grip) -> np.ndarray:
         """Samples in (perturbation N·m, driver torque N·m, angle rad, grip N), one compiled
         call; (n, N_OUT) out, the filter's state carried on."""
-        a = [np.ascontiguousarray(v, dtype=float) for v in (tp, td, theta, grip)]
-        outs = np.empty((len(a[0]), N_OUT))
-        _run(self.x, self.P, self.cfg, self.coef, self.dphi, self.dq, self.mem, *a, outs)
+        tp, td, theta, grip = (np.ascontiguousarray(v, dtype=float) for v in (tp, td, theta, grip))
+        outs = np.empty((len(tp), N_OUT))
+        _run(self.x, self.P, self.cfg, self.coef, self.dphi, self.dq, self.mem, tp, td, theta, grip,
+             outs)  # fmt: skip
         return outs
 
     def update(self, tp: float, td: float, theta: float, grip: float) -> np.ndarray:

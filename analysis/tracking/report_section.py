@@ -22,7 +22,12 @@ from typing import Any
 
 import numpy as np
 
-from steerlab.analysis.tracking.base import TrackedAdmittance, TrackingTrial, is_time_varying
+from steerlab.analysis.tracking.base import (
+    TrackedAdmittance,
+    TrackingEstimator,
+    TrackingTrial,
+    is_time_varying,
+)
 from steerlab.analysis.tracking.calibration import Calibration, CalibrationError, Disturbance
 from steerlab.analysis.tracking.kalman import GripInformedEKF
 from steerlab.analysis.tracking.metrics import TrackingScore, score
@@ -104,7 +109,7 @@ def analyse_tracking(records: Sequence[TrialRecord]) -> TrackingReport | None:
             out.problems.append(f"{subject}: not tracked: {e}")
             continue
         out.calibrations[subject] = cal
-        trackers = [GripScheduledLPV(), GripInformedEKF()]
+        trackers: list[TrackingEstimator] = [GripScheduledLPV(), GripInformedEKF()]
         for t in trackers:
             t.calibrate(cal)
         for rec in (r for r in varying if r.subject == subject):

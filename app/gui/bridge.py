@@ -29,7 +29,8 @@ class BridgeFault:
 
 
 class EngineBridge(QObject):
-    event = Signal(object)
+    # Not "event": that would hide QObject.event(), the handler Qt calls for every QEvent.
+    engine_event = Signal(object)
 
     def __init__(self, live: LiveData, parent: QObject | None = None) -> None:
         super().__init__(parent)
@@ -39,7 +40,7 @@ class EngineBridge(QObject):
 
     def connect_to(self, slot) -> None:
         # Explicitly queued: the slot must run on the GUI thread even if emit is on another.
-        self.event.connect(slot, Qt.ConnectionType.QueuedConnection)
+        self.engine_event.connect(slot, Qt.ConnectionType.QueuedConnection)
 
     def __call__(self, event: object) -> None:
         if isinstance(event, ev.TrialStarted):
@@ -49,8 +50,10 @@ class EngineBridge(QObject):
         except Exception as e:
             if not self._faulted:  # once per trial: a fault per block would flood the queue
                 self._faulted = True
-                self.event.emit(BridgeFault(f"live display: {e!r}\n{traceback.format_exc()}"))
+                self.engine_event.emit(
+                    BridgeFault(f"live display: {e!r}\n{traceback.format_exc()}")
+                )
         if isinstance(event, ev.SamplesAcquired):
             self.n_blocks += 1
             return
-        self.event.emit(event)
+        self.engine_event.emit(event)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import MutableMapping
 
 from steerlab.app.gui.rig import RigError, check_rig_path
 from steerlab.app.gui.system_libs import check_xcb, missing_libraries_message, uses_xcb
@@ -26,7 +27,7 @@ def configure_process(loop_in_process: bool = True) -> None:
     pg.setConfigOptions(antialias=False, background="w", foreground="k")
 
 
-def choose_platform(environ: dict[str, str] | None = None) -> str | None:
+def choose_platform(environ: MutableMapping[str, str] | None = None) -> str | None:
     """None if Qt can start here; else the message that says what to install.
 
     Runs before any Qt GUI module is loaded: a missing X11 library would otherwise abort the
@@ -68,6 +69,8 @@ def run_gui(rig: str | None, out: str, protocol: str | None) -> int:
 
     configure_process(loop_in_process=rig is None)
     app = QApplication.instance() or QApplication(sys.argv[:1])
+    if not isinstance(app, QApplication):
+        raise RuntimeError("steerlab gui: this process already runs a Qt application without a GUI")
     dashboard = SubjectDashboard(span_deg=dashboard_span(proto))
     win = ExperimenterWindow(proto, out, rig_path=rig, dashboard=dashboard)
     win.show()

@@ -113,7 +113,7 @@ class LiveCurve(QGraphicsItem):
     """One live curve: a path drawn with a one-pixel pen, and nothing else.
 
     pyqtgraph's ``PlotCurveItem`` does much more on every frame in Python (bounds from the
-    data, signals to its view, export and fill options). Here ``setData`` builds the path
+    data, signals to its view, export and fill options). Here ``set_curve`` builds the path
     (pyqtgraph's ``arrayToQPath``, vectorised) and ``paint`` draws it. The bounding rectangle
     is the plot's view, given by the owner: x is fixed and y is the held range, so Qt never
     has to ask the data.
@@ -143,7 +143,9 @@ class LiveCurve(QGraphicsItem):
             self.prepareGeometryChange()
             self._rect = QRectF(rect)
 
-    def setData(self, x: np.ndarray, y: np.ndarray) -> None:  # noqa: N802 (pyqtgraph's name)
+    # Not pyqtgraph's name setData: on a QGraphicsItem that is setData(key, value), which
+    # Qt and pyqtgraph call to tag items.
+    def set_curve(self, x: np.ndarray, y: np.ndarray) -> None:
         """Plot ``y`` against ``x`` (view units); NaN samples leave gaps."""
         finite = not (np.isnan(y).any() or np.isnan(x).any())
         if len(x) < 2:
@@ -356,7 +358,7 @@ class LivePlots(pg.GraphicsLayoutWidget):
                 s = self._scale[ch]
                 y = snap.channels[ch] * s if s != 1.0 else snap.channels[ch]
                 tt, yy = decimate_minmax(rel, y, n_points)
-                curve.setData(tt, yy)
+                curve.set_curve(tt, yy)
                 if len(yy) and not np.isnan(yy).all():  # a channel the rig does not send: NaN
                     i = self._panel_of[ch]
                     lo[i] = min(lo[i], float(np.nanmin(yy)))
@@ -370,7 +372,7 @@ class LivePlots(pg.GraphicsLayoutWidget):
             self.trial_time_s = now
         else:
             for curve in self.curves.values():
-                curve.setData(np.zeros(0), np.zeros(0))
+                curve.set_curve(np.zeros(0), np.zeros(0))
         self.refreshes += 1
         self.refresh_s += time.perf_counter() - t0
 

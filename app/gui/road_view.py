@@ -29,9 +29,10 @@ from typing import Any
 import numpy as np
 from PySide6.QtCore import QPointF, QRectF, Qt, QTimer
 from PySide6.QtGui import QBrush, QColor, QPainter, QPen, QPolygonF
-from PySide6.QtWidgets import QWidget
+from PySide6.QtWidgets import QBoxLayout, QWidget
 
 import steerlab.app.gui.qt_compat  # noqa: F401 (PySide6 6.12 on Python 3.11: see that module)
+from steerlab.app.gui.dashboard import SubjectDashboard
 from steerlab.hardware.vehicle import DRIVING_CHANNELS
 from steerlab.protocols.driving import DrivingCondition, DrivingSetup, Road, VehicleSpec
 from steerlab.protocols.protocol import Protocol
@@ -91,6 +92,7 @@ class RoadView(QWidget):
     def set_drive(self, drive: DrivingSetup | None) -> None:
         self.drive = drive
         self.state = {}
+        # The road's distance at each of its points; set with (and only with) a drive.
         self._grid = None if drive is None else np.arange(len(drive.road.x_m)) * drive.road.grid_m
         self.update()
 
@@ -101,7 +103,8 @@ class RoadView(QWidget):
     def lane_outline(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
         """(left edge, right edge, centre) as (n, 2) points in car coordinates (x right,
         y ahead, metres), and the car's lateral position; None before the car is known."""
-        if self.drive is None:
+        drive, g = self.drive, self._grid
+        if drive is None or g is None:
             return None
         st = self.state
         if self.vehicle_source is not None:
@@ -110,11 +113,10 @@ class RoadView(QWidget):
                 st = self.state = dict(got)
         if "road_distance_m" not in st:
             st = {"road_distance_m": 0.0, "lateral_position_m": 0.0, "heading_error_rad": 0.0}
-        road: Road = self.drive.road
+        road: Road = drive.road
         s, y, psi = st["road_distance_m"], st["lateral_position_m"], st["heading_error_rad"]
-        ahead = self.ahead_s * self.drive.condition.speed_mps
+        ahead = self.ahead_s * drive.condition.speed_mps
         ss = np.linspace(s - self.behind_m, s + ahead, 160)
-        g = self._grid
         h = np.interp(ss, g, road.heading_rad)
         cx, cy = np.interp(ss, g, road.x_m), np.interp(ss, g, road.y_m)
         w = np.interp(ss, g, road.lane_width_m)
@@ -136,7 +138,7 @@ class RoadView(QWidget):
         right = to_car(cx - nx * w / 2, cy - ny * w / 2)
         centre = to_car(cx, cy)
         width_here = float(np.interp(s, g, road.lane_width_m))
-        over = abs(y) + self.drive.vehicle.width_m / 2 - width_here / 2
+        over = abs(y) + drive.vehicle.width_m / 2 - width_here / 2
         self.outside = 0 if over <= 0 else (1 if y > 0 else -1)
         return left, right, centre, y
 
@@ -154,20 +156,23 @@ class RoadView(QWidget):
     def paintEvent(self, event) -> None:  # noqa: N802 (Qt's name)
         p = QPainter(self)
         p.fillRect(self.rect(), _BG)
-        geo = self.lane_outline()
-        if geo is None:
+        drive, geo = self.drive, self.lane_outline()
+        if drive is None or geo is None:
             p.end()
             return
         left, right, centre, _ = geo
         ox, oy, sx, sy = self.mapping()
 
+        def points(pts: np.ndarray) -> list[QPointF]:
+            return [QPointF(ox + a * sx, oy - b * sy) for a, b in pts]
+
         def poly(pts: np.ndarray) -> QPolygonF:
-            return QPolygonF([QPointF(ox + a * sx, oy - b * sy) for a, b in pts])
+            return QPolygonF(points(pts))
 
         p.setRenderHint(QPainter.RenderHint.Antialiasing, True)
         p.setPen(Qt.PenStyle.NoPen)
         p.setBrush(QBrush(_ROAD))
-        p.drawPolygon(QPolygonF(list(poly(left)) + list(reversed(list(poly(right))))))
+        p.drawPolygon(QPolygonF(points(left) + points(right[::-1])))
         dash = QPen(_CENTRE, 2, Qt.PenStyle.DashLine)
         p.setPen(dash)
         p.setBrush(Qt.BrushStyle.NoBrush)
@@ -176,7 +181,7 @@ class RoadView(QWidget):
             hit = self.outside == side
             p.setPen(QPen(_EDGE, 9 if hit else 4))
             p.drawPolyline(poly(pts))
-        veh: VehicleSpec = self.drive.vehicle
+        veh: VehicleSpec = drive.vehicle
         # Width to the lane's scale (it is what the feedback judges); the length drawn 2× so
         # that the car reads as a car with the magnified width (its length plays no part).
         cw, cl = veh.width_m * sx, 2.0 * (veh.cg_to_front_m + veh.cg_to_rear_m + 1.6) * sy
@@ -217,11 +222,16 @@ class DrivingDisplay:
     The dashboard keeps its own indicator view for the boundary tasks; this only swaps which of
     the two is visible (``install`` adds the road view to the dashboard's layout)."""
 
-    def __init__(self, dashboard: QWidget, protocol: Protocol, source: VehicleSource) -> None:
+    def __init__(
+        self, dashboard: SubjectDashboard, protocol: Protocol, source: VehicleSource
+    ) -> None:
         self.dashboard, self.protocol = dashboard, protocol
         self.view = RoadView(source, parent=dashboard)
         self.view.setVisible(False)
-        dashboard.layout().insertWidget(0, self.view, 1)
+        box = dashboard.layout()
+        if not isinstance(box, QBoxLayout):
+            raise TypeError(f"the subject dashboard's layout is a {type(box).__name__}, not a box")
+        box.insertWidget(0, self.view, 1)
 
     def trial_started(self, attributes: Mapping[str, Any]) -> None:
         drive = road_of_trial(attributes, self.protocol)
@@ -230,5 +240,7 @@ class DrivingDisplay:
         self.dashboard.view.setVisible(drive is None)
 
 
-def install(dashboard: QWidget, protocol: Protocol, source: VehicleSource) -> DrivingDisplay:
+def install(
+    dashboard: SubjectDashboard, protocol: Protocol, source: VehicleSource
+) -> DrivingDisplay:
     return DrivingDisplay(dashboard, protocol, source)

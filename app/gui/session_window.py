@@ -15,6 +15,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from PySide6.QtCore import Qt, QTimer
 from PySide6.QtGui import QCloseEvent, QColor, QFont, QKeySequence, QScreen, QShortcut
@@ -63,6 +64,9 @@ from steerlab.protocols import events as ev
 from steerlab.protocols.protocol import Protocol
 from steerlab.protocols.session import TrialSpec, subject_id
 
+if TYPE_CHECKING:  # the rig check's analysis is imported when a rig check is identified
+    from steerlab.analysis.rigcheck import Check, RigFit
+
 #: What the subject dashboard says during a rig check.
 HANDS_OFF_MESSAGE = "RIG CHECK — let go of the wheel, do not touch it"
 
@@ -71,8 +75,8 @@ HANDS_OFF_MESSAGE = "RIG CHECK — let go of the wheel, do not touch it"
 class RigCheckDone:
     """Posted (through the bridge's signal) when a rig check's identification ends."""
 
-    fit: object
-    checks: list
+    fit: RigFit | None  # None when the identification failed (error)
+    checks: list[Check]
     error: BaseException | None
 
 
@@ -407,16 +411,16 @@ class ExperimenterWindow(QMainWindow):
         def work():
             try:
                 fit, checks = self.controller.identify_rig_check()
-                self.bridge.event.emit(RigCheckDone(fit, checks, None))
+                self.bridge.engine_event.emit(RigCheckDone(fit, checks, None))
             except Exception as e:  # shown to the experimenter, never lost
-                self.bridge.event.emit(RigCheckDone(None, [], e))
+                self.bridge.engine_event.emit(RigCheckDone(None, [], e))
 
         self._alert("rig check: identifying the wheel ...")
         self.rig_check_thread = threading.Thread(target=work, name="steerlab-rigcheck")
         self.rig_check_thread.start()
 
     def _show_rig_check(self, done: RigCheckDone) -> None:
-        if done.error is not None:
+        if done.error is not None or done.fit is None:
             self._alert(f"rig check: {done.error}")
             return
         from steerlab.analysis.rigcheck import summary
@@ -588,8 +592,13 @@ class ExperimenterWindow(QMainWindow):
 
     def trial_states(self) -> dict[int, str]:
         """Trial index → state as the list shows it."""
-        return {int(self.table.item(i, 0).text()): self.table.item(i, 4).text()
-                for i in range(self.table.rowCount())}  # fmt: skip
+        return {int(self._cell(i, 0)): self._cell(i, 4) for i in range(self.table.rowCount())}
+
+    def _cell(self, row: int, column: int) -> str:
+        item = self.table.item(row, column)
+        if item is None:  # every cell is filled when the list is built
+            raise LookupError(f"trial list: no cell at row {row}, column {column}")
+        return item.text()
 
     def _show_next(self) -> None:
         spec: TrialSpec | None = self.controller.next_trial()

@@ -20,6 +20,7 @@ import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,7 +79,7 @@ class XcbCheck:
         return tuple(m for m in self.missing if m not in DEBIAN_PACKAGES)
 
 
-def uses_xcb(environ: dict[str, str] | None = None, platform: str | None = None) -> bool:
+def uses_xcb(environ: Mapping[str, str] | None = None, platform: str | None = None) -> bool:
     """Will Qt pick its X11 (xcb) plugin? On Linux unless QT_QPA_PLATFORM names another."""
     env = os.environ if environ is None else environ
     if not (platform or sys.platform).startswith("linux"):

@@ -8,16 +8,20 @@ aid never ends a trial: any error here is kept and shown, not raised.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from steerlab.protocols.events import SamplesAcquired, TrialStarted
 
+if TYPE_CHECKING:  # imported when a trial starts, not when the GUI does
+    from steerlab.analysis.tracking.online import AdmittanceEstimate, Method, OnlineTracker
+
 
 class TrackerFeed:
-    def __init__(self, method: str = "grip_ekf") -> None:
-        self.method = method
+    def __init__(self, method: Method = "grip_ekf") -> None:
+        self.method: Method = method
         self.results_path: Path | None = None
-        self.tracker = None
-        self.estimate = None  # analysis.tracking.online.AdmittanceEstimate, newest
+        self.tracker: OnlineTracker | None = None
+        self.estimate: AdmittanceEstimate | None = None  # the newest
         self.error: str | None = None
 
     def set_results(self, path: str | Path | None) -> None:

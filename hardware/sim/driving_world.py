@@ -121,10 +121,13 @@ class DrivingWorld(World):
     def _hand_block(self) -> np.ndarray:
         """The arm's extra torque of the current noise block: remnant + the driver's steering
         (filled sample by sample as the driver acts)."""
-        if self._hand_of is not self._blk:
-            self._hand_of = self._blk
-            self._hand = np.array(self._blk["remnant_Nm"], dtype=float)
-            self._k_i = np.ascontiguousarray(self._truth[:, 1])  # the arm's stiffness now
+        blk, truth = self._blk, self._truth
+        if blk is None or truth is None:  # a driving trial's driver is scheduled: truth recorded
+            raise RuntimeError("DrivingWorld: a driving sample before its block was drawn")
+        if self._hand_of is not blk:
+            self._hand_of = blk
+            self._hand = np.array(blk["remnant_Nm"], dtype=float)
+            self._k_i = np.ascontiguousarray(truth[:, 1])  # the arm's stiffness now
         return self._hand
 
     def run(self, tp: np.ndarray) -> dict[str, np.ndarray]:
@@ -152,8 +155,7 @@ class DrivingWorld(World):
         if self.driving is None:
             super().step(motor_command_nm)
             return
-        self._ensure_block()
-        b = self._blk
+        b = self._ensure_block()
         hand = self._hand_block()
         _driver_sample(
             self.x, self.st, self.p, self.ring_s, b["velocity_noise"], b["torque_noise"],

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from steerlab.hardware.interfaces import DriveReading, GripReading
+from steerlab.hardware.interfaces import Display, DriveReading, GripReading
 from steerlab.hardware.loop import LOOP_CHANNELS, DeviceLoop
 from steerlab.hardware.safety import SafetyLimits
 from steerlab.hardware.sim.driver import ANCHORS, DrivingBehaviour
@@ -101,7 +101,8 @@ class SimulatedRig:
         self.drive = SimulatedDrive(self.world)
         self.torque_sensor = SimulatedTorqueSensor(self.world)
         self.glove = SimulatedGlove(self.world)
-        self.display = SimulatedDisplay()
+        # The GUI puts its own in (app.gui.rig.DisplayState): any Display will do.
+        self.display: Display = SimulatedDisplay()
 
     def begin_trial(self, setup: TrialSetup) -> ConditionBehaviour:
         if abs(setup.fs_hz - self.cfg.fs_hz) > 1e-9:

@@ -284,7 +284,7 @@ class NoiseBlocks:
         self.zi_grip = np.array([self.rng.standard_normal() * self.a_grip])
         self.glove_every = max(1, int(round(fs / cfg.sensors.glove_rate_hz)))
         self.glove_phase = 0
-        self.glove_hold = None
+        self.glove_hold: tuple[float, float] | None = None  # the last glove frame (left, right)
 
     def _ar1(self, a: float, e: np.ndarray, zi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # y[k] = a y[k−1] + sqrt(1−a²) e[k]: unit variance when stationary.
@@ -297,6 +297,9 @@ class NoiseBlocks:
         rem, self.zi_rem = self._ar1(self.a_rem, e[0], self.zi_rem)
         g, self.zi_grip = self._ar1(self.a_grip, e[1], self.zi_grip)
         tv = None if self.schedule is None else self.schedule.next_block(n)
+        grip_mean: float | np.ndarray  # per sample when the driver is scheduled
+        grip_sd: float | np.ndarray
+        remnant_sd: float | np.ndarray
         if tv is None:
             grip_mean, grip_sd, remnant_sd = b.grip_mean_n, b.grip_sd_n, b.remnant_sd_nm
         else:
@@ -390,7 +393,8 @@ class World:
         self._cmd1 = np.zeros(1)
         self._trial = True
 
-    def _ensure_block(self) -> None:
+    def _ensure_block(self) -> dict[str, np.ndarray]:
+        """The current noise block, drawing the next one when this one is used up."""
         if self._blk is None or self._k >= self.noise.block:
             self._blk = self.noise.next_block()
             self._k = 0
@@ -399,6 +403,7 @@ class World:
                 dp = self._scheduled_deltas(self._blk, dp)
             self._dpar = dp if dp is not None else np.zeros((0, 4))
             self.p[P_HAS_DPAR] = 1.0 if dp is not None else 0.0
+        return self._blk
 
     def _scheduled_deltas(self, blk: dict[str, np.ndarray], dp: np.ndarray | None) -> np.ndarray:
         """Deltas for a scheduled block; records the truth. Adds to any mechanism's deltas.
@@ -460,9 +465,8 @@ class World:
         truth = np.empty((n, len(TRUTH_CHANNELS))) if with_truth else None
         done = 0
         while done < n:
-            self._ensure_block()
+            b = self._ensure_block()
             m = min(n - done, self.noise.block - self._k)
-            b = self._blk
             advance(b, tp[done : done + m], out[:, done : done + m], m)
             for key in extra:
                 extra[key][done : done + m] = b[key][self._k : self._k + m]
@@ -480,8 +484,7 @@ class World:
     # -- live, one sample at a time --------------------------------------------------------
     def read(self) -> dict[str, float]:
         """What the sensors report now (before the next step)."""
-        self._ensure_block()
-        b, k = self._blk, self._k
+        b, k = self._ensure_block(), self._k
         dkc = dbc = 0.0
         if self.p[P_HAS_DPAR] != 0.0:
             dkc, dbc = self._dpar[k, 3], self._dpar[k, 2]
@@ -517,8 +520,7 @@ class World:
 
     def step(self, motor_command_nm: float) -> None:
         """Apply one sample of motor command (N·m) and advance one sample."""
-        self._ensure_block()
-        b = self._blk
+        b = self._ensure_block()
         self._cmd1[0] = motor_command_nm
         _advance(
             self.x,
