@@ -83,6 +83,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.integrate import solve_ivp
@@ -156,7 +157,8 @@ def mechanism(kind: str, form: str, **params) -> dict:
             f"mechanism {kind}:{form}: unknown parameter(s) {sorted(unknown)}; "
             f"known: {sorted(forms[form])}"
         )
-    m = {"kind": kind, "form": form, **forms[form], **{k: float(v) for k, v in params.items()}}
+    m: dict[str, Any] = {"kind": kind, "form": form, **forms[form]}
+    m.update({k: float(v) for k, v in params.items()})
     if kind == "reflex" and not 0.0 < m["delay_s"]:
         raise OtherworldError(f"mechanism reflex: delay_s must be > 0, got {m['delay_s']}")
     return m
@@ -727,7 +729,7 @@ class StudyOptions:
 
 
 # Worlds a real lab varies and Steerlab cannot know (issue 13's robustness list), as StudyOptions.
-WORLDS = {
+WORLDS: dict[str, dict[str, Any]] = {
     "null": {},
     "inertia_0.05": {"arm_inertia": 0.05},
     "inertia_0.15": {"arm_inertia": 0.15},
@@ -840,7 +842,7 @@ def generate_study(
         pert_seed = int(ss.generate_state(1)[0])
     design = Multisine.design(pert_seed, period_s=opts.period_s)
     drift = next((m for m in opts.mechanisms if m["kind"] == "drift"), None)
-    truth = {
+    truth: dict[str, Any] = {
         "world": "steerlab.benchmarks.otherworld",
         "seed": seed,
         "options": asdict(opts),
@@ -1009,7 +1011,7 @@ def time_trials(fs_hz: float = 250.0, n_periods: int = 2, run_in_s: float = 5.0)
             arm=arm, fs_hz=fs_hz, mechanisms=[mechanism("friction", "stribeck")]
         ),
     }
-    out = {"trial_s": run_in_s + n_periods * d.period_s, "fs_hz": fs_hz}
+    out: dict[str, Any] = {"trial_s": run_in_s + n_periods * d.period_s, "fs_hz": fs_hz}
     for name, w in cases.items():
         w0, c0 = time.perf_counter(), time.process_time()
         simulate_trial(w, d, n_periods=n_periods, run_in_s=run_in_s, seed=1)
@@ -1053,7 +1055,7 @@ def main(argv: list[str]) -> dict:
     csv_dir = Path(a.out) / "csv" if a.report else Path(a.out)
     if a.report and Path(a.out).exists() and a.overwrite:
         shutil.rmtree(a.out)
-    options = dict(
+    options: dict[str, Any] = dict(
         fs_hz=a.fs,
         arm_inertia=a.inertia,
         remnant_rel=a.remnant_rel,
@@ -1109,8 +1111,7 @@ def recovery(truth: dict | str | Path, per_subject_csv: str | Path) -> dict:
     """
     import csv
 
-    if not isinstance(truth, dict):
-        truth = json.loads(Path(truth).read_text())
+    truth_doc: dict = truth if isinstance(truth, dict) else json.loads(Path(truth).read_text())
     est: dict[tuple[str, str], dict[str, float]] = {}
     with open(per_subject_csv, newline="") as fh:
         for row in csv.DictReader(fh):
@@ -1121,7 +1122,7 @@ def recovery(truth: dict | str | Path, per_subject_csv: str | Path) -> dict:
                     v = math.nan
                 est.setdefault((row["subject"], row["condition"]), {})[row["quantity"]] = v
     cells = []
-    for subj, s in truth["subjects"].items():
+    for subj, s in truth_doc["subjects"].items():
         for cond, arm in s["conditions"].items():
             e = est.get((subj, cond), {})
             cells.append(
@@ -1133,13 +1134,13 @@ def recovery(truth: dict | str | Path, per_subject_csv: str | Path) -> dict:
             )
     med = {}
     for k in ARM_KEYS:
-        v = np.array([c[k] for c in cells], dtype=float)
+        errs = np.array([c[k] for c in cells], dtype=float)
         med[k] = {
-            "median_error": float(np.nanmedian(v)) if np.any(np.isfinite(v)) else math.nan,
-            "median_abs_error": float(np.nanmedian(np.abs(v)))
-            if np.any(np.isfinite(v))
+            "median_error": float(np.nanmedian(errs)) if np.any(np.isfinite(errs)) else math.nan,
+            "median_abs_error": float(np.nanmedian(np.abs(errs)))
+            if np.any(np.isfinite(errs))
             else math.nan,
-            "n": int(np.sum(np.isfinite(v))),
+            "n": int(np.sum(np.isfinite(errs))),
         }
     return {"cells": cells, "parameters": med}
 
