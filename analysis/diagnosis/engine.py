@@ -39,7 +39,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -138,9 +138,10 @@ def start_arms(
     A misspecified model can drive a trial's arm to its bounds (the baseline on data with a
     10 ms torque-reading delay: k_i = 10⁵ N·m/rad, the contact spring taking the arm's
     compliance); a candidate started there stays stuck in that corner, so such arms are
-    replaced by plausible ones outright.
+    replaced by plausible ones outright. Every start keeps the current model's inertia of the
+    subject (the fit frees one per subject, started from one value).
     """
-    plausible = {t.label: plausible_arm(t) for t in trials}
+    plausible = {t.label: replace(plausible_arm(t), I_i=current[t.label].I_i) for t in trials}
     fixed = {
         t.label: plausible[t.label] if _degenerate(current[t.label]) else current[t.label]
         for t in trials

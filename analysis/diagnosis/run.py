@@ -303,13 +303,23 @@ def _fit_familiarization(setup: Setup, sel: Selection) -> dict[str, ArmParams]:
     x = sel.final.x
     for t in fam:
         t.remnant = []
-    start = {t.label: plausible_arm(t) for t in fam}
+    # A subject's inertia is the one its measured trials gave (one familiarization trial per
+    # condition would determine it poorly, and a different inertia would show as drift).
+    inertia = sel.final.inertia
+
+    def held(arm: ArmParams, t: TrialData) -> ArmParams:
+        return replace(arm, I_i=inertia[t.subject]) if t.subject in inertia else arm
+
+    start = {t.label: held(plausible_arm(t), t) for t in fam}
     noise = noise_model(fam, {t.label: simulated_spectra(t, start[t.label], mech) for t in fam})
-    arms = best_start_arms(fam, spec, noise, [start, {t.label: t.arm0 for t in fam}], x=x)
-    first = fit_model(fam, spec, noise, arms, x0=x, fix_mechanisms=True)
+    own = {t.label: held(t.arm0, t) for t in fam}
+    arms = best_start_arms(fam, spec, noise, [start, own], x=x)
+    first = fit_model(fam, spec, noise, arms, x0=x, fix_mechanisms=True, fit_inertia=False)
     set_remnants(fam, first.arms, setup.n_remnant)
     noise = noise_model(fam, first.simulated)
-    return fit_model(fam, spec, noise, first.arms, x0=x, fix_mechanisms=True).arms
+    return fit_model(
+        fam, spec, noise, first.arms, x0=x, fix_mechanisms=True, fit_inertia=False
+    ).arms
 
 
 def _stiffness_rows(
@@ -529,6 +539,9 @@ def _assemble(
             for a, b in setup.folds
         ],
         "arms": {lab: a.__dict__ for lab, a in final.arms.items()},
+        # One per subject, fitted with each model (baseline, retained model): a mechanism
+        # that looks like inertia in part moves it (docs/diagnosis.md).
+        "arm_inertia_kgm2": {"baseline": base.inertia, "extended": final.inertia},
         "remnant": _remnant_table(setup, final),
     }
     notes = list(prep.notes)

@@ -74,15 +74,7 @@ def hidden_study(root: Path, mech: m.Mechanisms, seed: int, n_subjects: int = 1)
 def test_hidden_mechanism_is_named_recovered_and_gains(case, tmp_path_factory):
     name, mech, param, truth, seed, n_subjects = case
     root = tmp_path_factory.mktemp("run")
-    # The reflex is held to the simulator's true arm inertia: with I_i fitted from the data
-    # under the baseline model (the default since issue 18), the inertia absorbs part of the
-    # reflex's delayed stiffness and k_p comes out at 2.5 instead of 6 (seed 11). That is an
-    # open limitation (I_i is not re-fitted with each candidate), not a property of the reflex
-    # test, which checks the reflex's detection and recovery once the arm is right.
-    inertia = 0.1 if name == "reflex_delay" else None
-    res = run_diagnosis(
-        hidden_study(root, mech, seed, n_subjects), root / "out", inertia_kgm2=inertia
-    )
+    res = run_diagnosis(hidden_study(root, mech, seed, n_subjects), root / "out")
     assert res.cause == name, res.summary()
     c = res.candidates[name]
     p = next(p for p in c["parameters"] if p["parameter"] == param)
