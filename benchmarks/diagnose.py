@@ -203,6 +203,10 @@ def main(argv: list[str]) -> dict:
     seeds = a.seeds or (3 if a.quick else 5)
     nulls = a.nulls if a.nulls is not None else (8 if a.quick else 20)
     cases: list[tuple] = []
+    if a.world in ("otherworld", "both"):
+        # First: its studies take longest, and a run stopped early keeps them (--out).
+        # Each is 2 subjects × 3 conditions at 250 Hz: one seed per form unless asked.
+        cases += ow.cases(a.quick, a.seeds or 1, nulls, a.only)
     if a.world in ("steerlab", "both"):
         for name in a.only or list(grid):
             # Drift shows between trials only: two subjects give it twice the trials to show in.
@@ -210,9 +214,6 @@ def main(argv: list[str]) -> dict:
             for mag in grid[name]:
                 cases += [("steerlab", name, mag, 1000 + 17 * s, n_sub) for s in range(seeds)]
         cases += [("steerlab", None, 0.0, 5000 + s, 1) for s in range(nulls)]
-    if a.world in ("otherworld", "both"):
-        # Each study is 2 subjects × 3 conditions at 250 Hz: one seed per form unless asked.
-        cases += ow.cases(a.quick, a.seeds or 1, nulls, a.only)
     load_before = os.getloadavg()
     t0 = time.perf_counter()
     results: list[dict] = []
