@@ -208,7 +208,7 @@ def main(argv: list[str]) -> dict:
         # Each is 2 subjects × 3 conditions at 250 Hz: one seed per form unless asked.
         cases += ow.cases(a.quick, a.seeds or 1, nulls, a.only)
     if a.world in ("steerlab", "both"):
-        for name in a.only or list(grid):
+        for name in [n for n in a.only or list(grid) if n in grid]:
             # Drift shows between trials only: two subjects give it twice the trials to show in.
             n_sub = 2 if name == "drift" else 1
             for mag in grid[name]:
