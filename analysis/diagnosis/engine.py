@@ -46,6 +46,7 @@ import numpy as np
 from steerlab.analysis.diagnosis.candidates import CANDIDATES, Candidate, candidate
 from steerlab.analysis.diagnosis.data import FALLBACK_ARM, PreparedStudy, TrialData, with_inertia
 from steerlab.analysis.diagnosis.fit import (
+    MAX_ITER,
     FitResult,
     ModelSpec,
     NoiseModel,
@@ -70,6 +71,12 @@ MIN_DBIC_NO_HELD_OUT = 30.0
 # passes BIC but not a cluster-robust Wald test (trials as clusters): z must exceed this.
 MIN_ROBUST_Z = 3.0
 MAX_MECHANISMS = 3
+# Iterations of each form's fit when a family has several (the best is then fitted fully).
+FORM_SCREEN_ITER = 4
+# Forms within this much −2 log L of the best are consistent with the data (the likelihood-ratio
+# 95 % set for one parameter, χ²₁): on Steerlab's own world a reflex's delay of 25–60 ms fitted
+# within 1.4 units (k_p 6), its activation dynamics 20 units apart.
+FORM_CONSISTENT_M2LL = 3.84
 # Candidates are re-evaluated at later steps only if they improved −2 log L by more than this
 # at the first step (χ²₁ above 6: p ≈ 0.014): masking that strong is not expected.
 RETRY_MIN_DELTA_M2LL = 6.0
@@ -168,6 +175,7 @@ def fit_nested(
     fallback_arms: dict[str, ArmParams],
     fallback_x: np.ndarray,
     fix_mechanisms: bool = False,
+    max_iter: int = MAX_ITER,
 ) -> FitResult:
     """:func:`fit_model` from ``arms0``; if it ends worse than the model it extends
     (``fallback_arms`` at ``fallback_x``: the candidate switched off), fitted again from there.
@@ -178,12 +186,11 @@ def fit_nested(
     10⁴ units of −2 log L worse than the baseline it contains. A candidate must never look
     worse than the model it extends.
     """
-    fit = fit_model(trials, spec, noise, arms0, x0=x0, fix_mechanisms=fix_mechanisms)
+    opts = {"fix_mechanisms": fix_mechanisms, "max_iter": max_iter}
+    fit = fit_model(trials, spec, noise, arms0, x0=x0, **opts)
     ref = 2.0 * sum(evaluate_cost(trials, spec, noise, fallback_arms, fallback_x).values())
     if ref < fit.m2ll:
-        alt = fit_model(
-            trials, spec, noise, fallback_arms, x0=fallback_x, fix_mechanisms=fix_mechanisms
-        )
+        alt = fit_model(trials, spec, noise, fallback_arms, x0=fallback_x, **opts)
         if alt.m2ll < fit.m2ll:
             fit = alt
     return fit
@@ -261,11 +268,17 @@ class CandidateResult:
     fold_x: list[np.ndarray] = field(default_factory=list, repr=False)
     fold_cost: list[float] = field(default_factory=list, repr=False)
     robust_z: float = float("nan")
+    form: str = "default"  # the family's best-fitting form
+    form_m2ll: dict[str, float] = field(default_factory=dict)  # −2 log L of every form tried
+    forms_consistent: list[str] = field(default_factory=list)  # within FORM_CONSISTENT_M2LL
 
     def to_dict(self) -> dict:
         return {
             "name": self.name,
             "step": self.step,
+            "form": self.form,
+            "forms_minus2loglik": self.form_m2ll,
+            "forms_consistent_with_data": self.forms_consistent,
             "parameters": [p for p in self.fit.parameters() if p["mechanism"] == self.name],
             "delta_minus2loglik": self.delta_m2ll,
             "delta_bic": self.delta_bic,
@@ -320,12 +333,47 @@ def make_current(
     return Current(spec, fit, xs, costs)
 
 
-def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> CandidateResult:
-    cand = candidate(name)
+def _fit_form(
+    setup: Setup, current: Current, cand: Candidate, max_iter: int = MAX_ITER
+) -> FitResult:
     spec = ModelSpec(current.spec.base, current.spec.free + (cand,), current.spec.fs_ref)
     x0 = np.concatenate([current.fit.x, spec.start()[current.spec.n_free :]])
     a0 = start_arms(setup, setup.trials, spec, setup.noise, x0, current.fit.arms)
-    fit = fit_nested(setup.trials, spec, setup.noise, a0, x0, current.fit.arms, _new_off(spec, x0))
+    off = _new_off(spec, x0)
+    return fit_nested(
+        setup.trials, spec, setup.noise, a0, x0, current.fit.arms, off, max_iter=max_iter
+    )
+
+
+def _consistent(form_m2ll: dict[str, float]) -> list[str]:
+    """The forms whose −2 log L is within :data:`FORM_CONSISTENT_M2LL` of the best, best first
+    (the others were fitted for a few iterations only: an approximate set)."""
+    if not form_m2ll:
+        return []
+    best = min(form_m2ll.values())
+    ranked = sorted(form_m2ll, key=form_m2ll.__getitem__)
+    return [f for f in ranked if form_m2ll[f] - best <= FORM_CONSISTENT_M2LL]
+
+
+def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> CandidateResult:
+    """The family ``name`` added to the current model: each of its forms fitted on all trials,
+    the best by −2 log L judged (ΔBIC, held-out folds) as the family's candidate. A family the
+    baseline already has (a model file's) is re-fitted in the form it has."""
+    family = candidate(name)
+    forms = (family.form,) if family.is_on(current.spec.base) else family.forms
+    if len(forms) == 1:
+        fit, form, form_m2ll = _fit_form(setup, current, family.with_form(forms[0])), forms[0], {}
+    else:
+        # Each form gets a few iterations and the best of them the full fit: fitting every
+        # form fully would cost as much as that many candidates.
+        fits = [
+            (_fit_form(setup, current, family.with_form(f), FORM_SCREEN_ITER), f) for f in forms
+        ]
+        form_m2ll = {f.name: r.m2ll for r, f in fits}
+        screened, form = min(fits, key=lambda pair: pair[0].m2ll)
+        fit = fit_model(setup.trials, screened.spec, setup.noise, screened.arms, x0=screened.x)
+        form_m2ll[form.name] = fit.m2ll
+    spec = fit.spec
     d_m2ll = current.fit.m2ll - fit.m2ll
     d_bic = fit.bic - current.fit.bic
     gain = None
@@ -339,8 +387,9 @@ def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> 
         folds = [c0 - c1 for c0, c1 in zip(current.fold_test_cost, costs, strict=True)]
         gain = float(sum(folds))
     return CandidateResult(
-        name, step, fit, float(d_m2ll), float(d_bic), gain, folds, fold_x=xs, fold_cost=costs
-    )
+        name, step, fit, float(d_m2ll), float(d_bic), gain, folds, fold_x=xs, fold_cost=costs,
+        form=form.name, form_m2ll=form_m2ll, forms_consistent=_consistent(form_m2ll),
+    )  # fmt: skip
 
 
 def robust_z(r: CandidateResult) -> float:

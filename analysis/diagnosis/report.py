@@ -19,6 +19,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from steerlab.analysis.diagnosis.candidates import CANDIDATES
+from steerlab.analysis.diagnosis.run import form_sentence
 from steerlab.analysis.study import _condition_key
 
 DPI = 90
@@ -391,6 +392,8 @@ def _candidate_table(result) -> str:
             f"{p['parameter']} = {_n(p['value'], 3)} ± {_n(p['se'], 2)} {p['unit']}"
             for p in d.get("parameters", [])
         )
+        if d.get("forms_minus2loglik"):
+            params = f"form: {form_sentence(d)}; {params}"
         rows.append([
             _e(name), params, _n(d.get("delta_bic"), 4),
             _n(d.get("held_out_gain_minus2loglik"), 4),

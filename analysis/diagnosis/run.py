@@ -108,6 +108,8 @@ class DiagnosisResult:
             lines.append("all causes (strongest first): " + ", ".join(self.causes))
         for name in self.causes:
             c = self.candidates.get(name, {})
+            if c.get("forms_minus2loglik"):
+                lines.append(f"  {name}: best-fitting form {form_sentence(c)}")
             for p in c.get("parameters", []):
                 lo, hi = p["ci95"]
                 lines.append(
@@ -141,6 +143,12 @@ class DiagnosisResult:
         if self.model_path is not None:
             lines.append(f"model: {self.model_path}")
         return "\n".join(lines)
+
+
+def form_sentence(c: dict) -> str:
+    """A candidate's best form, and the others as consistent with the data."""
+    also = [f for f in c.get("forms_consistent_with_data", []) if f != c["form"]]
+    return c["form"] + (f" (as consistent with the data: {'; '.join(also)})" if also else "")
 
 
 def _fmt(v: Any) -> str:
@@ -432,6 +440,10 @@ def _candidate_table(sel: Selection, drift: DriftResult | None) -> dict[str, dic
     for r in sel.retained:
         out[r.name]["retained"] = True
         out[r.name]["retained_at_step"] = r.step
+        # The form retained (the family's best at that step) and those as consistent with it.
+        out[r.name]["form"] = r.form
+        out[r.name]["forms_minus2loglik"] = r.form_m2ll
+        out[r.name]["forms_consistent_with_data"] = r.forms_consistent
         # The retained model's parameters (all its data; nonlinear ones refined at the end).
         out[r.name]["parameters"] = [p for p in sel.final.parameters() if p["mechanism"] == r.name]
     for d in out.values():
