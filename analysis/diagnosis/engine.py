@@ -71,6 +71,9 @@ MIN_DBIC_NO_HELD_OUT = 30.0
 # passes BIC but not a cluster-robust Wald test (trials as clusters): z must exceed this.
 MIN_ROBUST_Z = 3.0
 MAX_MECHANISMS = 3
+# Two passing candidates whose criterion (held-out −2 log L, or BIC) differs by less than this
+# many of its standard errors explain the data equally well: both are named (confusable()).
+AMBIGUITY_Z = 2.0
 # Iterations of each form's fit when a family has several (the best is then fitted fully).
 FORM_SCREEN_ITER = 4
 # Forms within this much −2 log L of the best are consistent with the data (the likelihood-ratio
@@ -271,6 +274,9 @@ class CandidateResult:
     form: str = "default"  # the family's best-fitting form
     form_m2ll: dict[str, float] = field(default_factory=dict)  # −2 log L of every form tried
     forms_consistent: list[str] = field(default_factory=list)  # within FORM_CONSISTENT_M2LL
+    held_out_trial_cost: dict[str, float] = field(default_factory=dict, repr=False)
+    # Candidates of the same step that explain the data as well as this one (see confusable).
+    equally_good: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {
@@ -287,6 +293,7 @@ class CandidateResult:
             "robust_z": self.robust_z,
             "passed": self.passed,
             "reason": self.reason,
+            "equally_good": self.equally_good,
             "iterations": self.fit.iterations,
             "converged": self.fit.converged,
         }
@@ -307,10 +314,12 @@ def _fold_eval(
     spec: ModelSpec,
     arms: dict[str, ArmParams],
     x_starts: Sequence[np.ndarray] | None = None,
-) -> tuple[list[np.ndarray], list[float]]:
+) -> tuple[list[np.ndarray], list[float], dict[str, float]]:
     """Per fold: the mechanism coordinates fitted on the training trials (from ``x_starts``,
-    never from a fit that saw the test trials), and −2 log L on the test trials with them."""
+    never from a fit that saw the test trials), and −2 log L on the test trials with them;
+    and −2 log L per test trial (key "fold:label")."""
     xs, costs = [], []
+    per_trial: dict[str, float] = {}
     for i, (train, test) in enumerate(setup.folds):
         if spec.n_free:
             x0 = None if x_starts is None else x_starts[i]
@@ -323,13 +332,14 @@ def _fold_eval(
         te = fit_nested(test, spec, setup.noise, a0, x, arms, x, fix_mechanisms=True)
         xs.append(x)
         costs.append(te.m2ll)
-    return xs, costs
+        per_trial.update({f"{i}:{lab}": 2.0 * c for lab, c in te.cost_trial.items()})
+    return xs, costs, per_trial
 
 
 def make_current(
     setup: Setup, spec: ModelSpec, fit: FitResult, x_starts: Sequence[np.ndarray] | None = None
 ) -> Current:
-    xs, costs = _fold_eval(setup, spec, fit.arms, x_starts)
+    xs, costs, _ = _fold_eval(setup, spec, fit.arms, x_starts)
     return Current(spec, fit, xs, costs)
 
 
@@ -380,15 +390,17 @@ def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> 
     folds: list[float] = []
     xs: list[np.ndarray] = []
     costs: list[float] = []
+    per_trial: dict[str, float] = {}
     if setup.folds:
         new = spec.start()[current.spec.n_free :]
         starts = [np.concatenate([x, new]) for x in current.fold_x]
-        xs, costs = _fold_eval(setup, spec, current.fit.arms, starts)
+        xs, costs, per_trial = _fold_eval(setup, spec, current.fit.arms, starts)
         folds = [c0 - c1 for c0, c1 in zip(current.fold_test_cost, costs, strict=True)]
         gain = float(sum(folds))
     return CandidateResult(
         name, step, fit, float(d_m2ll), float(d_bic), gain, folds, fold_x=xs, fold_cost=costs,
         form=form.name, form_m2ll=form_m2ll, forms_consistent=_consistent(form_m2ll),
+        held_out_trial_cost=per_trial,
     )  # fmt: skip
 
 
@@ -411,6 +423,51 @@ def parameter_z(fit: FitResult, name: str) -> float:
         if se and np.isfinite(se) and se > 0:
             z = max(z, abs(p["value"] - o["value"]) / se)
     return float(z)
+
+
+def confusable(
+    best: CandidateResult, others: Sequence[CandidateResult], held_out: bool
+) -> list[dict]:
+    """The passing candidates that explain the data as well as ``best``, within the noise of
+    the criterion, with the evidence for each (issue 18 item 4).
+
+    The criterion is what chose ``best``: the held-out −2 log L (or, without a held-out check,
+    BIC). Its difference between two candidates is a sum over trials of per-trial differences
+    (held out: over the test trials of every fold), and the trials are independent, so its
+    standard error is √n × their standard deviation. Within ``AMBIGUITY_Z`` standard errors the
+    data cannot tell the two apart.
+    """
+    out = []
+    for r in others:
+        if r is best or not r.passed:
+            continue
+        if held_out:
+            keys = sorted(best.held_out_trial_cost.keys() & r.held_out_trial_cost.keys())
+            d = np.array([r.held_out_trial_cost[k] - best.held_out_trial_cost[k] for k in keys])
+            offset = 0.0
+        else:
+            keys = sorted(best.fit.cost_trial.keys() & r.fit.cost_trial.keys())
+            d = np.array([2.0 * (r.fit.cost_trial[k] - best.fit.cost_trial[k]) for k in keys])
+            offset = (r.fit.n_params - best.fit.n_params) * math.log(max(best.fit.n_obs, 2))
+        if len(d) < 2:
+            continue
+        diff = float(d.sum() + offset)
+        se = float(math.sqrt(len(d)) * d.std(ddof=1))
+        if diff <= AMBIGUITY_Z * se:
+            out.append(
+                {
+                    "name": r.name,
+                    "form": r.form,
+                    "criterion": "held-out −2 log L" if held_out else "BIC",
+                    "worse_by": diff,  # the criterion's difference, alternative − best
+                    "se": se,
+                    "held_out_gain_minus2loglik": r.held_out_gain,
+                    "delta_bic": r.delta_bic,
+                    "robust_z": r.robust_z,
+                    "parameters": [p for p in r.fit.parameters() if p["mechanism"] == r.name],
+                }
+            )
+    return out
 
 
 def judge(results: Sequence[CandidateResult], held_out: bool) -> None:
@@ -557,6 +614,7 @@ def select(
                 break
             key = (lambda r: r.held_out_gain) if setup.folds else (lambda r: -r.delta_bic)
             best = max(passing, key=key)
+            best.equally_good = confusable(best, passing, held_out=bool(setup.folds))
             retained.append(best)
             current = Current(best.fit.spec, best.fit, best.fold_x, best.fold_cost)
     finally:

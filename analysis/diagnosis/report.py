@@ -332,6 +332,17 @@ def _verdict(result) -> str:
     else:
         parts.append(f"<p><b>Cause: {_e(c)}.</b> Retained (strongest first): "
                      f"{_e(', '.join(result.causes))}.</p>")  # fmt: skip
+    for name, alts in result.equally_good.items():
+        others = ", ".join(a["name"] for a in alts)
+        rows_eq = [[_e(a["name"]), _e(a["form"]), _n(a["held_out_gain_minus2loglik"], 4),
+                    _n(a["delta_bic"], 4), f"{_n(a['worse_by'], 3)} ± {_n(a['se'], 2)}"]
+                   for a in alts]  # fmt: skip
+        parts.append(
+            f"<p><b>The data cannot tell {_e(name)} from {_e(others)}</b>: they explain the "
+            "data equally well (the criterion differs by less than two of its standard "
+            "errors). Both are possible; the evidence for each alternative:</p>"
+            + _table(["alternative", "form", "held-out gain", "ΔBIC", "worse by"], rows_eq)
+        )
     rows = []
     for name in result.causes:
         for p in result.candidates.get(name, {}).get("parameters", []):

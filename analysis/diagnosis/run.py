@@ -79,6 +79,8 @@ class DiagnosisResult:
     # plus "check": the wheel fitted from the data and how well each wheel fits them.
     wheel: dict = field(default_factory=dict)
     wheel_sentence: str = ""
+    # Retained mechanism → the candidates that explain the data as well (engine.confusable).
+    equally_good: dict[str, list[dict]] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return json_clean(
@@ -87,6 +89,7 @@ class DiagnosisResult:
                 "format_version": 1,
                 "cause": self.cause,
                 "causes": self.causes,
+                "equally_good": self.equally_good,
                 "baseline_model": self.baseline_model,
                 "wheel": self.wheel,
                 "candidates": self.candidates,
@@ -103,7 +106,13 @@ class DiagnosisResult:
 
     def summary(self) -> str:
         lines = [f"wheel: {self.wheel_sentence}"] if self.wheel_sentence else []
-        lines.append(f"cause: {self.cause}")
+        alt = self.equally_good.get(self.cause, [])
+        if alt:
+            names = " or ".join([self.cause] + [a["name"] for a in alt])
+            lines.append(f"cause: {names} (the data cannot tell them apart)")
+        else:
+            lines.append(f"cause: {self.cause}")
+        lines += _equally_good_lines(self.equally_good, self.candidates)
         if len(self.causes) > 1:
             lines.append("all causes (strongest first): " + ", ".join(self.causes))
         for name in self.causes:
@@ -149,6 +158,25 @@ def form_sentence(c: dict) -> str:
     """A candidate's best form, and the others as consistent with the data."""
     also = [f for f in c.get("forms_consistent_with_data", []) if f != c["form"]]
     return c["form"] + (f" (as consistent with the data: {'; '.join(also)})" if also else "")
+
+
+def _equally_good_lines(equally_good: dict[str, list[dict]], candidates: dict) -> list[str]:
+    """The evidence for each of two (or more) mechanisms that explain the data equally well."""
+    lines = []
+    for name, alts in equally_good.items():
+        own = candidates.get(name, {})
+        lines.append(
+            f"  {name}: held-out gain {_fmt(own.get('held_out_gain_minus2loglik'))}, "
+            f"ΔBIC {_fmt(own.get('delta_bic'))} (retained)"
+        )
+        for a in alts:
+            params = ", ".join(f"{p['parameter']} = {_fmt(p['value'])}" for p in a["parameters"])
+            lines.append(
+                f"  {a['name']}: held-out gain {_fmt(a['held_out_gain_minus2loglik'])}, "
+                f"ΔBIC {_fmt(a['delta_bic'])} ({params}); worse by {_fmt(a['worse_by'])} ± "
+                f"{_fmt(a['se'])} on {a['criterion']}: within the noise"
+            )
+    return lines
 
 
 def _fmt(v: Any) -> str:
@@ -574,6 +602,7 @@ def _assemble(
         notes=notes,
         limits=list(prep.limits),
         baseline_model=str(model) if model is not None else None,
+        equally_good={r.name: r.equally_good for r in sel.retained if r.equally_good},
     )
 
 
