@@ -15,12 +15,21 @@ diagnosed. Reported:
 
 Goals (issue "Diagnose"): ≥ 90 % correct names at moderate magnitude, ≤ 5 % false alarms, one
 subject session < 60 s. ``--quick`` runs a reduced grid (fewer magnitudes and seeds).
+
+``--world otherworld`` (or ``both``, the default) runs the same on studies of the independent
+world (issue 18 item 3; :mod:`benchmarks._diagnose_otherworld`): every form of every mechanism
+family at moderate magnitude, and a batch of null studies; goal there ≤ 60 s per study of 2
+subjects × 3 conditions. Time is measured as wall and as CPU seconds of the diagnosis (one job
+per study): on a shared machine the CPU seconds are what compare. The last line's JSON has
+``side_by_side`` (one row per headline figure, one column per world), ``worlds`` (each world's
+full summary) and the load average before and after.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import tempfile
 import time
@@ -28,6 +37,8 @@ from concurrent.futures import ProcessPoolExecutor
 from contextlib import nullcontext
 from pathlib import Path
 
+from steerlab.benchmarks import _diagnose_otherworld as ow
+from steerlab.benchmarks._diagnose_otherworld import time_summary
 from steerlab.benchmarks.machine import machine
 
 MODERATE = {
@@ -125,24 +136,34 @@ def make_study(
     return root / "c"
 
 
-def run_case(args: tuple) -> dict:
-    mechanism, magnitude, seed, n_subjects = args
+def _diagnose(data: Path) -> tuple[object | None, str | None, float, float]:
+    """(result or None, error or None, wall s, CPU s) of one diagnosis with one job."""
     from steerlab.analysis.diagnosis import run_diagnosis
 
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        res, err = run_diagnosis(data, None, jobs=1), None
+    except Exception as e:  # a crash is a result too: counted, not fatal to the run
+        res, err = None, f"{type(e).__name__}: {e}"
+    return res, err, time.perf_counter() - t0, time.process_time() - c0
+
+
+def run_case(args: tuple) -> dict:
+    """One study: ("steerlab", mechanism, magnitude, seed, subjects) or
+    ("otherworld", kind, form, seed)."""
+    if args[0] == "otherworld":
+        return _run_otherworld_case(*args[1:])
+    _, mechanism, magnitude, seed, n_subjects = args
     with tempfile.TemporaryDirectory() as tmp:
         data = make_study(Path(tmp) / "s", mechanism, magnitude, seed=seed, n_subjects=n_subjects)
-        t0 = time.perf_counter()
-        try:
-            r = run_diagnosis(data, None, jobs=1)
-        except Exception as e:  # a crash is a result too: counted, not fatal to the run
-            return {
-                "mechanism": mechanism or "none", "magnitude": magnitude, "seed": seed,
-                "n_subjects": n_subjects, "cause": "error", "causes": [],
-                "error": f"{type(e).__name__}: {e}", "truth_in_ci95": None,
-                "seconds": time.perf_counter() - t0,
-                "seconds_per_subject": (time.perf_counter() - t0) / n_subjects,
-            }  # fmt: skip
-        wall = time.perf_counter() - t0
+        r, err, wall, cpu = _diagnose(data)
+    row = {
+        "world": "steerlab", "mechanism": mechanism or "none", "magnitude": magnitude,
+        "seed": seed, "n_subjects": n_subjects, "seconds": wall, "cpu_seconds": cpu,
+        "seconds_per_subject": wall / n_subjects,
+    }  # fmt: skip
+    if r is None:
+        return {**row, "cause": "error", "causes": [], "error": err, "truth_in_ci95": None}
     within = None
     if mechanism is not None and mechanism in r.causes:
         key = TRUE_PARAMETER[mechanism]
@@ -150,24 +171,31 @@ def run_case(args: tuple) -> dict:
             if p["parameter"] == key:
                 lo, hi = p["ci95"]
                 within = bool(lo <= magnitude <= hi)
-    return {
-        "mechanism": mechanism or "none",
-        "magnitude": magnitude,
-        "seed": seed,
-        "n_subjects": n_subjects,
-        "cause": r.cause,
-        "causes": r.causes,
-        "truth_in_ci95": within,
-        "seconds": wall,
-        "seconds_per_subject": wall / n_subjects,
-    }
+    return {**row, "cause": r.cause, "causes": r.causes, "truth_in_ci95": within}
+
+
+def _run_otherworld_case(kind: str | None, form: str | None, seed: int) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        data = ow.make_study(Path(tmp) / "s", kind, form, seed=seed)
+        r, err, wall, cpu = _diagnose(data)
+    row = {"world": "otherworld", "kind": kind, "form": form, "seed": seed,
+           "seconds": wall, "cpu_seconds": cpu}  # fmt: skip
+    if r is None:
+        return {**row, "cause": "error", "causes": [], "error": err}
+    return {**row, "cause": r.cause, "causes": r.causes, "limits": r.limits}
 
 
 def main(argv: list[str]) -> dict:
     ap = argparse.ArgumentParser(prog="python -m benchmarks diagnose")
     ap.add_argument("--quick", action="store_true", help="reduced grid")
+    ap.add_argument(
+        "--world",
+        choices=("steerlab", "otherworld", "both"),
+        default="both",
+        help="Steerlab's simulator, the independent one (benchmarks/otherworld.py), or both",
+    )
     ap.add_argument("--seeds", type=int, default=None, help="studies per grid point")
-    ap.add_argument("--nulls", type=int, default=None, help="null studies")
+    ap.add_argument("--nulls", type=int, default=None, help="null studies per world")
     ap.add_argument("--jobs", type=int, default=1, help="studies diagnosed in parallel")
     ap.add_argument("--scheduler", help="Dask scheduler address, or local[:N] (studies on Dask)")
     ap.add_argument("--only", nargs="*", help="mechanisms to run (default: all)")
@@ -176,14 +204,19 @@ def main(argv: list[str]) -> dict:
     grid = QUICK_GRID if a.quick else GRID
     seeds = a.seeds or (3 if a.quick else 5)
     nulls = a.nulls if a.nulls is not None else (8 if a.quick else 20)
-    names = a.only or list(grid)
-    cases = []
-    for name in names:
-        # Drift shows between trials only: two subjects give it twice the trials to show in.
-        n_sub = 2 if name == "drift" else 1
-        for mag in grid[name]:
-            cases += [(name, mag, 1000 + 17 * s, n_sub) for s in range(seeds)]
-    cases += [(None, 0.0, 5000 + s, 1) for s in range(nulls)]
+    cases: list[tuple] = []
+    if a.world in ("otherworld", "both"):
+        # First: its studies take longest, and a run stopped early keeps them (--out).
+        # Each is 2 subjects × 3 conditions at 250 Hz: one seed per form unless asked.
+        cases += ow.cases(a.quick, a.seeds or 1, nulls, a.only)
+    if a.world in ("steerlab", "both"):
+        for name in [n for n in a.only or list(grid) if n in grid]:
+            # Drift shows between trials only: two subjects give it twice the trials to show in.
+            n_sub = 2 if name == "drift" else 1
+            for mag in grid[name]:
+                cases += [("steerlab", name, mag, 1000 + 17 * s, n_sub) for s in range(seeds)]
+        cases += [("steerlab", None, 0.0, 5000 + s, 1) for s in range(nulls)]
+    load_before = os.getloadavg()
     t0 = time.perf_counter()
     results: list[dict] = []
     from steerlab.analysis.executors import executor_for
@@ -197,7 +230,31 @@ def main(argv: list[str]) -> dict:
             if a.out:  # as it goes: a long run that is stopped keeps what it did
                 Path(a.out).write_text(json.dumps(results, indent=1))
     wall = time.perf_counter() - t0
-    return {**summarise(results, grid), "wall_s": round(wall, 1), "machine": machine()}
+    worlds = {}
+    if a.world in ("steerlab", "both"):
+        worlds["steerlab"] = summarise([r for r in results if r["world"] == "steerlab"], grid)
+    if a.world in ("otherworld", "both"):
+        worlds["otherworld"] = ow.summarise(results)
+    return {
+        "side_by_side": side_by_side(worlds),
+        "worlds": worlds,
+        "wall_s": round(wall, 1),
+        "load_average": {"before": load_before, "after": os.getloadavg()},
+        "machine": machine(),
+    }
+
+
+def side_by_side(worlds: dict[str, dict]) -> dict[str, dict]:
+    """The headline figures, one row per figure, one column per world."""
+    rows = {
+        "correct_name_rate_at_moderate": lambda w: w.get("correct_name_rate_at_moderate"),
+        "false_alarm_rate": lambda w: w.get("false_alarm_rate"),
+        "n_null": lambda w: w.get("n_null"),
+        "errors": lambda w: w.get("errors"),
+        "median_cpu_seconds_per_study": lambda w: w["seconds_per_study"]["cpu_seconds"]["median"],
+        "max_cpu_seconds_per_study": lambda w: w["seconds_per_study"]["cpu_seconds"]["max"],
+    }
+    return {k: {name: f(w) for name, w in worlds.items()} for k, f in rows.items()}
 
 
 def summarise(results: list[dict], grid: dict) -> dict:
@@ -240,6 +297,7 @@ def summarise(results: list[dict], grid: dict) -> dict:
         "false_alarm_causes": sorted({r["cause"] for r in nulls if r["cause"] != "none"}),
         "errors": sum(r["cause"] == "error" for r in results),
         "n_null": len(nulls),
+        "seconds_per_study": time_summary(results),
         "seconds_per_subject_session": {
             "median": sorted(secs)[len(secs) // 2] if secs else None,
             "max": max(secs) if secs else None,

@@ -11,10 +11,13 @@ linear at the start value, so that Gauss–Newton works from "mechanism off":
   (:mod:`analysis.diagnosis.simulate`); the world rounds it to whole samples.
 - all others: in their own units.
 
-Parameters not listed are held at their defaults (reflex delay 40 ms and activation dynamics
-2.17 Hz / 0.7 from van der Helm et al. 2002; friction velocity scale 0.01 rad/s): with the
-perturbation's band they are poorly identified together with the gains, and the gains are
-what tells whether the mechanism is there.
+Parameters not listed are not fitted: with the perturbation's band they are poorly identified
+together with the gains, and the gains are what tells whether the mechanism is there. A
+family's *forms* (:class:`Form`) set them instead, and the best-fitting form is chosen
+(:func:`analysis.diagnosis.engine.evaluate_candidate`): the reflex's delay (25–80 ms) and
+activation dynamics (van der Helm et al. 2002's 2.17 Hz / 0.7, or a fast 6 Hz / 1). The others
+have one form each (friction velocity scale 0.01 rad/s): further forms need their laws in the
+simulator's kernel (docs/diagnosis.md, "Mechanism families").
 
 ``drift`` is not fitted on the signals: every trial has its own arm parameters, which absorb
 any change between trials. It is fitted on those parameters (:mod:`analysis.diagnosis.drift`).
@@ -62,16 +65,34 @@ class ParamSpec:
 
 
 @dataclass(frozen=True)
-class Candidate:
+class Form:
+    """One form of a mechanism family: the slot's settings that are not fitted but chosen
+    (the best of the family's forms, by −2 log L on all trials)."""
+
     name: str
+    fixed: tuple[tuple[str, float], ...] = ()  # (field, value) of the mechanism's slot
+
+
+DEFAULT_FORM = Form("default")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    name: str  # the family (a slot of Mechanisms)
     params: tuple[ParamSpec, ...]
     signature: str  # what identifies it, for the report
+    forms: tuple[Form, ...] = (DEFAULT_FORM,)
+    form: Form = DEFAULT_FORM  # the form this candidate is fitted in
+
+    def with_form(self, form: Form) -> Candidate:
+        return replace(self, form=form)
 
     def apply(self, mech: Mechanisms, coords: list[float], fs_ref: float) -> Mechanisms:
         slot = getattr(mech, self.name)
-        values = {
-            p.field: p.to_physical(x, fs_ref) for p, x in zip(self.params, coords, strict=True)
-        }
+        values = dict(self.form.fixed)
+        values.update(
+            {p.field: p.to_physical(x, fs_ref) for p, x in zip(self.params, coords, strict=True)}
+        )
         return replace(mech, **{self.name: replace(slot, **values)})
 
     def current(self, mech: Mechanisms, fs_ref: float) -> list[float]:
@@ -83,6 +104,20 @@ class Candidate:
         return bool(getattr(mech, self.name).active)
 
 
+# The reflex family (issue 18 item 2): a neural delay of 20–80 ms, and activation dynamics
+# from van der Helm et al. (2002: 2.17 Hz, ζ 0.7) to a fast, first-order-like one (6 Hz, ζ 1).
+# The gains are fitted in each form; the form is the one with the lowest −2 log L.
+REFLEX_DELAYS_S = (0.025, 0.04, 0.06, 0.08)
+REFLEX_ACTIVATIONS = (("van der Helm", 2.17, 0.7), ("fast", 6.0, 1.0))
+REFLEX_FORMS = tuple(
+    Form(
+        f"delay {d * 1000:.0f} ms, {label} activation ({hz:g} Hz, ζ {zeta:g})",
+        (("delay_s", d), ("activation_hz", hz), ("activation_zeta", zeta)),
+    )
+    for label, hz, zeta in REFLEX_ACTIVATIONS
+    for d in REFLEX_DELAYS_S
+)
+
 CANDIDATES: tuple[Candidate, ...] = (
     Candidate(
         "reflex_delay",
@@ -92,6 +127,7 @@ CANDIDATES: tuple[Candidate, ...] = (
         ),
         "a change in the admittance's shape between about 1 and 5 Hz (delayed, low-passed "
         "stiffness and damping) that no mass-spring-damper arm reproduces",
+        forms=REFLEX_FORMS,
     ),
     Candidate(
         "coulomb_friction",

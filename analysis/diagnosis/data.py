@@ -112,10 +112,12 @@ class TrialData:
     remnant: list[np.ndarray] = field(default_factory=list)
     # Undo the model's torque-reading delay in the wheel-equation channel (final fit only).
     undo_reading_delay: bool = False
-    # The subject's arm inertia from the data (:func:`_cell_fits`), NaN until fitted; every
-    # arm the diagnosis simulates for this trial carries it.
+    # The subject's arm inertia from the data (:func:`_cell_fits`), NaN until fitted: the start
+    # of the inertia every model fits per subject (analysis.diagnosis.fit), or, when
+    # ``inertia_fixed`` (run_diagnosis(inertia_kgm2=...)), the value every model holds.
     I_i: float = float("nan")
     I_i_sem: float | None = None
+    inertia_fixed: bool = False
     _projector: Callable[[np.ndarray], np.ndarray] | None = field(default=None, repr=False)
 
     def __getstate__(self) -> dict:
@@ -474,6 +476,7 @@ def _cell_fits(
         subject_trials += [t for t in fam if t.subject == subject]
         for t in subject_trials:
             t.I_i, t.I_i_sem = I_i, I_sem
+            t.inertia_fixed = inertia_kgm2 is not None
             t.arm_cell = cell_arm.get(t.condition, replace(FALLBACK_ARM, I_i=I_i))
             try:
                 fit = fit_arm(frequency_response(t.spectra), held)

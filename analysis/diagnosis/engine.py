@@ -39,13 +39,14 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from steerlab.analysis.diagnosis.candidates import CANDIDATES, Candidate, candidate
 from steerlab.analysis.diagnosis.data import FALLBACK_ARM, PreparedStudy, TrialData, with_inertia
 from steerlab.analysis.diagnosis.fit import (
+    MAX_ITER,
     FitResult,
     ModelSpec,
     NoiseModel,
@@ -71,6 +72,15 @@ MIN_DBIC_NO_HELD_OUT = 30.0
 # passes BIC but not a cluster-robust Wald test (trials as clusters): z must exceed this.
 MIN_ROBUST_Z = 3.0
 MAX_MECHANISMS = 3
+# Two passing candidates whose criterion (held-out −2 log L, or BIC) differs by less than this
+# many of its standard errors explain the data equally well: both are named (confusable()).
+AMBIGUITY_Z = 2.0
+# Iterations of each form's fit when a family has several (the best is then fitted fully).
+FORM_SCREEN_ITER = 4
+# Forms within this much −2 log L of the best are consistent with the data (the likelihood-ratio
+# 95 % set for one parameter, χ²₁): on Steerlab's own world a reflex's delay of 25–60 ms fitted
+# within 1.4 units (k_p 6), its activation dynamics 20 units apart.
+FORM_CONSISTENT_M2LL = 3.84
 # Candidates are re-evaluated at later steps only if they improved −2 log L by more than this
 # at the first step (χ²₁ above 6: p ≈ 0.014): masking that strong is not expected.
 RETRY_MIN_DELTA_M2LL = 6.0
@@ -139,9 +149,10 @@ def start_arms(
     A misspecified model can drive a trial's arm to its bounds (the baseline on data with a
     10 ms torque-reading delay: k_i = 10⁵ N·m/rad, the contact spring taking the arm's
     compliance); a candidate started there stays stuck in that corner, so such arms are
-    replaced by plausible ones outright.
+    replaced by plausible ones outright. Every start keeps the current model's inertia of the
+    subject (the fit frees one per subject, started from one value).
     """
-    plausible = {t.label: plausible_arm(t) for t in trials}
+    plausible = {t.label: replace(plausible_arm(t), I_i=current[t.label].I_i) for t in trials}
     fixed = {
         t.label: plausible[t.label] if _degenerate(current[t.label]) else current[t.label]
         for t in trials
@@ -168,6 +179,7 @@ def fit_nested(
     fallback_arms: dict[str, ArmParams],
     fallback_x: np.ndarray,
     fix_mechanisms: bool = False,
+    max_iter: int = MAX_ITER,
 ) -> FitResult:
     """:func:`fit_model` from ``arms0``; if it ends worse than the model it extends
     (``fallback_arms`` at ``fallback_x``: the candidate switched off), fitted again from there.
@@ -178,12 +190,11 @@ def fit_nested(
     10⁴ units of −2 log L worse than the baseline it contains. A candidate must never look
     worse than the model it extends.
     """
-    fit = fit_model(trials, spec, noise, arms0, x0=x0, fix_mechanisms=fix_mechanisms)
+    opts = {"fix_mechanisms": fix_mechanisms, "max_iter": max_iter}
+    fit = fit_model(trials, spec, noise, arms0, x0=x0, **opts)
     ref = 2.0 * sum(evaluate_cost(trials, spec, noise, fallback_arms, fallback_x).values())
     if ref < fit.m2ll:
-        alt = fit_model(
-            trials, spec, noise, fallback_arms, x0=fallback_x, fix_mechanisms=fix_mechanisms
-        )
+        alt = fit_model(trials, spec, noise, fallback_arms, x0=fallback_x, **opts)
         if alt.m2ll < fit.m2ll:
             fit = alt
     return fit
@@ -261,11 +272,20 @@ class CandidateResult:
     fold_x: list[np.ndarray] = field(default_factory=list, repr=False)
     fold_cost: list[float] = field(default_factory=list, repr=False)
     robust_z: float = float("nan")
+    form: str = "default"  # the family's best-fitting form
+    form_m2ll: dict[str, float] = field(default_factory=dict)  # −2 log L of every form tried
+    forms_consistent: list[str] = field(default_factory=list)  # within FORM_CONSISTENT_M2LL
+    held_out_trial_cost: dict[str, float] = field(default_factory=dict, repr=False)
+    # Candidates of the same step that explain the data as well as this one (see confusable).
+    equally_good: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {
             "name": self.name,
             "step": self.step,
+            "form": self.form,
+            "forms_minus2loglik": self.form_m2ll,
+            "forms_consistent_with_data": self.forms_consistent,
             "parameters": [p for p in self.fit.parameters() if p["mechanism"] == self.name],
             "delta_minus2loglik": self.delta_m2ll,
             "delta_bic": self.delta_bic,
@@ -274,6 +294,7 @@ class CandidateResult:
             "robust_z": self.robust_z,
             "passed": self.passed,
             "reason": self.reason,
+            "equally_good": self.equally_good,
             "iterations": self.fit.iterations,
             "converged": self.fit.converged,
         }
@@ -294,10 +315,12 @@ def _fold_eval(
     spec: ModelSpec,
     arms: dict[str, ArmParams],
     x_starts: Sequence[np.ndarray] | None = None,
-) -> tuple[list[np.ndarray], list[float]]:
+) -> tuple[list[np.ndarray], list[float], dict[str, float]]:
     """Per fold: the mechanism coordinates fitted on the training trials (from ``x_starts``,
-    never from a fit that saw the test trials), and −2 log L on the test trials with them."""
+    never from a fit that saw the test trials), and −2 log L on the test trials with them;
+    and −2 log L per test trial (key "fold:label")."""
     xs, costs = [], []
+    per_trial: dict[str, float] = {}
     for i, (train, test) in enumerate(setup.folds):
         if spec.n_free:
             x0 = None if x_starts is None else x_starts[i]
@@ -310,37 +333,76 @@ def _fold_eval(
         te = fit_nested(test, spec, setup.noise, a0, x, arms, x, fix_mechanisms=True)
         xs.append(x)
         costs.append(te.m2ll)
-    return xs, costs
+        per_trial.update({f"{i}:{lab}": 2.0 * c for lab, c in te.cost_trial.items()})
+    return xs, costs, per_trial
 
 
 def make_current(
     setup: Setup, spec: ModelSpec, fit: FitResult, x_starts: Sequence[np.ndarray] | None = None
 ) -> Current:
-    xs, costs = _fold_eval(setup, spec, fit.arms, x_starts)
+    xs, costs, _ = _fold_eval(setup, spec, fit.arms, x_starts)
     return Current(spec, fit, xs, costs)
 
 
-def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> CandidateResult:
-    cand = candidate(name)
+def _fit_form(
+    setup: Setup, current: Current, cand: Candidate, max_iter: int = MAX_ITER
+) -> FitResult:
     spec = ModelSpec(current.spec.base, current.spec.free + (cand,), current.spec.fs_ref)
     x0 = np.concatenate([current.fit.x, spec.start()[current.spec.n_free :]])
     a0 = start_arms(setup, setup.trials, spec, setup.noise, x0, current.fit.arms)
-    fit = fit_nested(setup.trials, spec, setup.noise, a0, x0, current.fit.arms, _new_off(spec, x0))
+    off = _new_off(spec, x0)
+    return fit_nested(
+        setup.trials, spec, setup.noise, a0, x0, current.fit.arms, off, max_iter=max_iter
+    )
+
+
+def _consistent(form_m2ll: dict[str, float]) -> list[str]:
+    """The forms whose −2 log L is within :data:`FORM_CONSISTENT_M2LL` of the best, best first
+    (the others were fitted for a few iterations only: an approximate set)."""
+    if not form_m2ll:
+        return []
+    best = min(form_m2ll.values())
+    ranked = sorted(form_m2ll, key=form_m2ll.__getitem__)
+    return [f for f in ranked if form_m2ll[f] - best <= FORM_CONSISTENT_M2LL]
+
+
+def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> CandidateResult:
+    """The family ``name`` added to the current model: each of its forms fitted on all trials,
+    the best by −2 log L judged (ΔBIC, held-out folds) as the family's candidate. A family the
+    baseline already has (a model file's) is re-fitted in the form it has."""
+    family = candidate(name)
+    forms = (family.form,) if family.is_on(current.spec.base) else family.forms
+    if len(forms) == 1:
+        fit, form, form_m2ll = _fit_form(setup, current, family.with_form(forms[0])), forms[0], {}
+    else:
+        # Each form gets a few iterations and the best of them the full fit: fitting every
+        # form fully would cost as much as that many candidates.
+        fits = [
+            (_fit_form(setup, current, family.with_form(f), FORM_SCREEN_ITER), f) for f in forms
+        ]
+        form_m2ll = {f.name: r.m2ll for r, f in fits}
+        screened, form = min(fits, key=lambda pair: pair[0].m2ll)
+        fit = fit_model(setup.trials, screened.spec, setup.noise, screened.arms, x0=screened.x)
+        form_m2ll[form.name] = fit.m2ll
+    spec = fit.spec
     d_m2ll = current.fit.m2ll - fit.m2ll
     d_bic = fit.bic - current.fit.bic
     gain = None
     folds: list[float] = []
     xs: list[np.ndarray] = []
     costs: list[float] = []
+    per_trial: dict[str, float] = {}
     if setup.folds:
         new = spec.start()[current.spec.n_free :]
         starts = [np.concatenate([x, new]) for x in current.fold_x]
-        xs, costs = _fold_eval(setup, spec, current.fit.arms, starts)
+        xs, costs, per_trial = _fold_eval(setup, spec, current.fit.arms, starts)
         folds = [c0 - c1 for c0, c1 in zip(current.fold_test_cost, costs, strict=True)]
         gain = float(sum(folds))
     return CandidateResult(
-        name, step, fit, float(d_m2ll), float(d_bic), gain, folds, fold_x=xs, fold_cost=costs
-    )
+        name, step, fit, float(d_m2ll), float(d_bic), gain, folds, fold_x=xs, fold_cost=costs,
+        form=form.name, form_m2ll=form_m2ll, forms_consistent=_consistent(form_m2ll),
+        held_out_trial_cost=per_trial,
+    )  # fmt: skip
 
 
 def robust_z(r: CandidateResult) -> float:
@@ -362,6 +424,51 @@ def parameter_z(fit: FitResult, name: str) -> float:
         if se and np.isfinite(se) and se > 0:
             z = max(z, abs(p["value"] - o["value"]) / se)
     return float(z)
+
+
+def confusable(
+    best: CandidateResult, others: Sequence[CandidateResult], held_out: bool
+) -> list[dict]:
+    """The passing candidates that explain the data as well as ``best``, within the noise of
+    the criterion, with the evidence for each (issue 18 item 4).
+
+    The criterion is what chose ``best``: the held-out −2 log L (or, without a held-out check,
+    BIC). Its difference between two candidates is a sum over trials of per-trial differences
+    (held out: over the test trials of every fold), and the trials are independent, so its
+    standard error is √n × their standard deviation. Within ``AMBIGUITY_Z`` standard errors the
+    data cannot tell the two apart.
+    """
+    out = []
+    for r in others:
+        if r is best or not r.passed:
+            continue
+        if held_out:
+            keys = sorted(best.held_out_trial_cost.keys() & r.held_out_trial_cost.keys())
+            d = np.array([r.held_out_trial_cost[k] - best.held_out_trial_cost[k] for k in keys])
+            offset = 0.0
+        else:
+            keys = sorted(best.fit.cost_trial.keys() & r.fit.cost_trial.keys())
+            d = np.array([2.0 * (r.fit.cost_trial[k] - best.fit.cost_trial[k]) for k in keys])
+            offset = (r.fit.n_params - best.fit.n_params) * math.log(max(best.fit.n_obs, 2))
+        if len(d) < 2:
+            continue
+        diff = float(d.sum() + offset)
+        se = float(math.sqrt(len(d)) * d.std(ddof=1))
+        if diff <= AMBIGUITY_Z * se:
+            out.append(
+                {
+                    "name": r.name,
+                    "form": r.form,
+                    "criterion": "held-out −2 log L" if held_out else "BIC",
+                    "worse_by": diff,  # the criterion's difference, alternative − best
+                    "se": se,
+                    "held_out_gain_minus2loglik": r.held_out_gain,
+                    "delta_bic": r.delta_bic,
+                    "robust_z": r.robust_z,
+                    "parameters": [p for p in r.fit.parameters() if p["mechanism"] == r.name],
+                }
+            )
+    return out
 
 
 def judge(results: Sequence[CandidateResult], held_out: bool) -> None:
@@ -512,6 +619,7 @@ def select(
                 break
             key = (lambda r: r.held_out_gain) if setup.folds else (lambda r: -r.delta_bic)
             best = max(passing, key=key)
+            best.equally_good = confusable(best, passing, held_out=bool(setup.folds))
             retained.append(best)
             current = Current(best.fit.spec, best.fit, best.fold_x, best.fold_cost)
     finally:

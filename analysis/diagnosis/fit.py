@@ -1,10 +1,12 @@
 """Fitting a model (per-trial arm + shared mechanism parameters) to measured spectra.
 
 Model
-    Every trial t has its own arm (b_i, k_i, b_c, k_c; I_i held at 0.1 kg·m² as in
-    ``analysis.armfit``): the arm changes a little from repetition to repetition, and a
-    mechanism must not get credit for that. The mechanism parameters x are shared by all
-    trials. For given parameters the world is simulated on each trial's measured perturbation
+    Every trial t has its own arm (b_i, k_i, b_c, k_c): the arm changes a little from
+    repetition to repetition, and a mechanism must not get credit for that. Every subject has
+    one arm inertia I_i, shared by its trials, fitted with every model (the baseline and each
+    candidate alike): held at the baseline's value, it absorbed part of a reflex (k_p 2.5
+    instead of 6 on Steerlab's own world, issue 18). The mechanism parameters x are shared by
+    all trials. For given parameters the world is simulated on each trial's measured perturbation
     (:mod:`analysis.diagnosis.simulate`) and compared with the measurement on the trial's bins.
 
 Residuals
@@ -31,9 +33,11 @@ Noise model (fixed before any model is fitted)
 Optimisation
     Levenberg–Marquardt on the whitened residuals. Jacobians by forward differences of the
     simulator: one simulation per arm parameter perturbs that parameter in every trial at once
-    (the trials are independent), one per mechanism parameter. The arm parameters are
-    eliminated by a Schur complement, so a step costs one small solve per trial. Arm
-    parameters are fitted as logarithms (positive, stiffness and damping on one scale).
+    (the trials are independent), one per mechanism parameter, one for the inertias (each
+    subject's in its own trials, all at once). The per-trial arm parameters are eliminated by
+    a Schur complement, so a step costs one small solve per trial; the shared block is the
+    mechanism parameters and the subjects' inertias. Arm parameters and inertias are fitted as
+    logarithms (positive, stiffness and damping on one scale).
 
 Uncertainty
     The covariance of x is the inverse Fisher information 2 JᵀJ of the whitened residuals
@@ -58,6 +62,7 @@ from steerlab.hardware.sim.mechanisms import Mechanisms
 from steerlab.hardware.sim.physiology import ArmParams
 
 ARM_FREE = ("b_i", "k_i", "b_c", "k_c")
+INERTIA = "I_i"  # one per subject, in the shared block (module docstring)
 ARM_STEP = 1e-3  # forward-difference step in log(parameter)
 MAX_ITER = 15
 # Stop when the cost improves by less than this per trial: model comparisons work with
@@ -167,6 +172,7 @@ class FitResult:
     converged: bool
     lack_of_fit: float  # mean whitened residual power per complex value (1 when within noise)
     labels: tuple[str, ...] = field(default_factory=tuple)
+    inertia: dict[str, float] = field(default_factory=dict)  # subject → I_i, where fitted
 
     @property
     def m2ll(self) -> float:
@@ -176,7 +182,7 @@ class FitResult:
 
     @property
     def n_params(self) -> int:
-        return len(ARM_FREE) * len(self.arms) + self.spec.n_free
+        return len(ARM_FREE) * len(self.arms) + self.spec.n_free + len(self.inertia)
 
     @property
     def bic(self) -> float:
@@ -329,8 +335,10 @@ def arm_jacobian(
     arm: ArmParams,
     Ysim: np.ndarray,
     W: Callable[[np.ndarray], np.ndarray],
+    names: Sequence[str] = ARM_FREE,
 ) -> np.ndarray:
-    """d(whitened residual)/d(log arm parameter), (n_real, 4), from the continuous-time loop.
+    """d(whitened residual)/d(log arm parameter), (n_real, len(names)), from the
+    continuous-time loop.
 
     θ = G Tp with G = 1/(Z_w + Y), Td = Y θ, Y = 1/H_adm the arm's impedance; the relative
     sensitivities of G and Y·G to each parameter, applied to the simulated spectra. Only the
@@ -345,13 +353,14 @@ def arm_jacobian(
     Y = 1.0 / H
     Zw = trial.Zw
     dH = {
+        "I_i": -arm.I_i * s**2 / Zi**2,
         "b_i": -arm.b_i * s / Zi**2,
         "k_i": -arm.k_i / Zi**2,
         "b_c": -arm.b_c * s / C**2,
         "k_c": -arm.k_c / C**2,
     }
-    out = np.empty((4 * len(s), len(ARM_FREE)))
-    for j, name in enumerate(ARM_FREE):
+    out = np.empty((4 * len(s), len(names)))
+    for j, name in enumerate(names):
         dY = -(Y**2) * dH[name]  # dY/dlog p
         rel_theta = -dY / (Zw + Y)  # dlog G / dlog p
         rel_td = dY / Y + rel_theta  # dlog(Y G) / dlog p
@@ -364,16 +373,48 @@ def arm_jacobian(
     return out
 
 
-def _arm_jacobian_fd(trials, st, W, mech) -> dict[str, np.ndarray]:
-    """Forward differences of the simulator: exact for any mechanism, four simulations."""
-    A = {t.label: np.empty((len(st.r[t.label]), len(ARM_FREE))) for t in trials}
-    for j in range(len(ARM_FREE)):
+def _arm_jacobian_fd(trials, st, W, mech, names=ARM_FREE) -> dict[str, np.ndarray]:
+    """Forward differences of the simulator in log(parameter): exact for any mechanism, one
+    simulation per trial and name."""
+    A = {t.label: np.empty((len(st.r[t.label]), len(names))) for t in trials}
+    for j, name in enumerate(names):
         for t in trials:
-            z = _arm_log(st.arms[t.label])
-            z[j] += ARM_STEP
-            Ys = simulated_spectra(t, _arm_from_log(st.arms[t.label], z), mech)
+            arm = st.arms[t.label]
+            lo, hi = ARM_BOUNDS[name]
+            bumped = min(max(getattr(arm, name) * math.exp(ARM_STEP), lo), hi)
+            Ys = simulated_spectra(t, replace(arm, **{name: bumped}), mech)
             A[t.label][:, j] = (W[t.label](residual_vectors(t, Ys)) - st.r[t.label]) / ARM_STEP
     return A
+
+
+def _inertia_subjects(trials: Sequence[TrialData], fit_inertia: bool) -> list[str]:
+    """The subjects whose inertia a fit frees: all, unless held (``inertia_kgm2``)."""
+    if not fit_inertia:
+        return []
+    return sorted({t.subject for t in trials if not t.inertia_fixed})
+
+
+def _with_subject_inertia(
+    trials: Sequence[TrialData], arms: dict[str, ArmParams], inertia: dict[str, float]
+) -> dict[str, ArmParams]:
+    return {
+        t.label: replace(arms[t.label], I_i=inertia[t.subject])
+        if t.subject in inertia
+        else arms[t.label]
+        for t in trials
+    }
+
+
+def _start_inertia(
+    trials: Sequence[TrialData], arms: dict[str, ArmParams], subjects: Sequence[str]
+) -> dict[str, float]:
+    """Per subject, the geometric mean of its trials' start inertias (one value: the start
+    arms may come from several sources)."""
+    out = {}
+    for s in subjects:
+        vals = [arms[t.label].I_i for t in trials if t.subject == s]
+        out[s] = float(np.exp(np.mean(np.log(vals))))
+    return out
 
 
 def _pinv(a: np.ndarray) -> np.ndarray:
@@ -460,14 +501,20 @@ def fit_model(
     x0: np.ndarray | None = None,
     fix_mechanisms: bool = False,
     max_iter: int = MAX_ITER,
+    fit_inertia: bool = True,
 ) -> FitResult:
-    """Weighted-least-squares fit of the per-trial arms (and, unless fixed, the mechanism
-    parameters) on ``trials``. ``x0``: start (or fixed) mechanism coordinates."""
+    """Weighted-least-squares fit of the per-trial arms, the subjects' inertias (unless
+    ``fit_inertia`` is false or the data hold them) and, unless fixed, the mechanism
+    parameters on ``trials``. ``x0``: start (or fixed) mechanism coordinates."""
     x = spec.start() if x0 is None else np.array(x0, dtype=float)
     x = spec.clip(x)
     n_m = 0 if fix_mechanisms else spec.n_free
+    subjects = _inertia_subjects(trials, fit_inertia)
+    n_g = n_m + len(subjects)  # the shared block: mechanism parameters, then inertias
+    col = {s: n_m + i for i, s in enumerate(subjects)}
     W = {t.label: whitener(t, noise[t.label]) for t in trials}
-    arms0 = {t.label: arms0[t.label] for t in trials}
+    inertia = _start_inertia(trials, arms0, subjects)
+    arms0 = _with_subject_inertia(trials, arms0, inertia)
     st = _evaluate(trials, spec, W, arms0, x)
     if n_m and x0 is None:
         # Switching a mechanism on must never start worse than leaving it off.
@@ -479,16 +526,23 @@ def fit_model(
     it = 0
     last = None
     specs = spec.specs()
+    lo_i, hi_i = (math.log(v) for v in ARM_BOUNDS[INERTIA])
     for iteration in range(1, max_iter + 1):
         it = iteration
         mech = spec.mechanisms(st.x)
         r = st.r
+        names = ARM_FREE + ((INERTIA,) if subjects else ())
         if FD_ARM_JACOBIAN_WITH_MECHANISMS and [m for m in mech.active() if m != "drift"]:
-            A = _arm_jacobian_fd(trials, st, W, mech)
+            A = _arm_jacobian_fd(trials, st, W, mech, names)
         else:
-            A = {t.label: arm_jacobian(t, st.arms[t.label], st.Ysim[t.label], W[t.label])
+            A = {t.label: arm_jacobian(t, st.arms[t.label], st.Ysim[t.label], W[t.label], names)
                  for t in trials}  # fmt: skip
-        B = {t.label: np.empty((len(r[t.label]), n_m)) for t in trials}
+        B = {t.label: np.zeros((len(r[t.label]), n_g)) for t in trials}
+        for t in trials:
+            # The inertia's column is its subject's shared parameter; a held one has none.
+            if t.subject in col:
+                B[t.label][:, col[t.subject]] = A[t.label][:, len(ARM_FREE)]
+            A[t.label] = A[t.label][:, : len(ARM_FREE)]
         for m in range(n_m):
             xm = st.x.copy()
             h = specs[m].step
@@ -506,8 +560,8 @@ def fit_model(
                 J[t.label] = np.where(bad, 0.0, J[t.label])
         # Normal equations with the arm parameters eliminated (Schur complement).
         blocks = {}
-        H_mm = np.zeros((n_m, n_m))
-        g_m = np.zeros(n_m)
+        H_mm = np.zeros((n_g, n_g))
+        g_m = np.zeros(n_g)
         for t in trials:
             a, b, rr = A[t.label], B[t.label], r[t.label]
             blocks[t.label] = (a.T @ a, a.T @ b, a.T @ rr, b.T @ rr)
@@ -526,19 +580,25 @@ def fit_model(
                 inv[t.label] = Hinv
                 S_mm -= Hab.T @ Hinv @ Hab
                 s_m -= Hab.T @ Hinv @ ga
-            dx = -_pinv(S_mm) @ s_m if n_m else np.zeros(0)
+            dx = -_pinv(S_mm) @ s_m if n_g else np.zeros(0)
+            new_inertia = {
+                s: float(np.exp(np.clip(math.log(inertia[s]) + dx[col[s]], lo_i, hi_i)))
+                for s in subjects
+            }
             new_arms = {}
             for t in trials:
                 Haa, Hab, ga, _ = blocks[t.label]
                 da = -inv[t.label] @ (ga + Hab @ dx)
                 new_arms[t.label] = _arm_from_log(st.arms[t.label], _arm_log(st.arms[t.label]) + da)
+            new_arms = _with_subject_inertia(trials, new_arms, new_inertia)
             x_new = st.x.copy()
             if n_m:
-                x_new = spec.clip(st.x + dx)
+                x_new = spec.clip(st.x + dx[:n_m])
             cand = _evaluate(trials, spec, W, new_arms, x_new)
             if cand.total < st.total - 1e-9:
                 gain = st.total - cand.total
                 st = cand
+                inertia = new_inertia
                 lam = max(lam / 5.0, 1e-7)
                 accepted = True
                 break
@@ -551,28 +611,7 @@ def fit_model(
     lack = st.total / n_values  # E|z|² = 1 per complex value within noise
     cov = np.zeros((0, 0))
     if n_m and last is not None:
-        H_mm, blocks = last
-        S_mm = H_mm.copy()
-        meat = np.zeros((n_m, n_m))
-        for Haa, Hab, ga, gb in blocks.values():
-            Hinv = _pinv(Haa)
-            S_mm -= Hab.T @ Hinv @ Hab
-            g = gb - Hab.T @ Hinv @ ga  # the trial's score, its own arm profiled out
-            meat += np.outer(g, g)
-        try:
-            # Fisher information of the complex Gaussian: 2 JᵀJ of the real-stacked residual.
-            fisher = np.linalg.inv(2.0 * S_mm)
-            # Cluster-robust (by trial) sandwich: equals the Fisher covariance when the noise
-            # model holds. On null simulations the grip-scheduled stiffness and the cubic
-            # stiffness scattered 1.5× beyond their Fisher standard errors (their evidence
-            # sits at the unexcited bins next to the excited lines); each parameter gets the
-            # larger of the two.
-            S_inv = np.linalg.inv(S_mm)
-            sandwich = S_inv @ meat @ S_inv * (len(trials) / max(len(trials) - n_m, 1))
-            scale = np.sqrt(np.maximum(1.0, np.diag(sandwich) / np.diag(fisher)))
-            cov = fisher * np.outer(scale, scale)
-        except np.linalg.LinAlgError:
-            cov = np.full((n_m, n_m), np.nan)
+        cov = _mechanism_covariance(last, trials, n_m)
     return FitResult(
         spec=spec,
         x=st.x,
@@ -585,4 +624,35 @@ def fit_model(
         converged=converged,
         lack_of_fit=float(lack),
         labels=tuple(t.label for t in trials),
+        inertia=dict(inertia),
     )
+
+
+def _mechanism_covariance(last: tuple, trials: Sequence[TrialData], n_m: int) -> np.ndarray:
+    """Covariance of the mechanism coordinates (the first ``n_m`` of the shared block), with
+    the per-trial arms and the inertias profiled out."""
+    H_mm, blocks = last
+    n_g = H_mm.shape[0]
+    S_mm = H_mm.copy()
+    meat = np.zeros((n_g, n_g))
+    for Haa, Hab, ga, gb in blocks.values():
+        Hinv = _pinv(Haa)
+        S_mm -= Hab.T @ Hinv @ Hab
+        g = gb - Hab.T @ Hinv @ ga  # the trial's score, its own arm profiled out
+        meat += np.outer(g, g)
+    try:
+        # Fisher information of the complex Gaussian: 2 JᵀJ of the real-stacked residual.
+        fisher = np.linalg.inv(2.0 * S_mm)
+        # Cluster-robust (by trial) sandwich: equals the Fisher covariance when the noise
+        # model holds. On null simulations the grip-scheduled stiffness and the cubic
+        # stiffness scattered 1.5× beyond their Fisher standard errors (their evidence
+        # sits at the unexcited bins next to the excited lines); each parameter gets the
+        # larger of the two. The small-sample factor counts the mechanism parameters, as
+        # before the inertias joined the block.
+        S_inv = np.linalg.inv(S_mm)
+        sandwich = S_inv @ meat @ S_inv * (len(trials) / max(len(trials) - n_m, 1))
+        scale = np.sqrt(np.maximum(1.0, np.diag(sandwich) / np.diag(fisher)))
+        cov = fisher * np.outer(scale, scale)
+    except np.linalg.LinAlgError:
+        return np.full((n_m, n_m), np.nan)
+    return cov[:n_m, :n_m]

@@ -19,6 +19,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from steerlab.analysis.diagnosis.candidates import CANDIDATES
+from steerlab.analysis.diagnosis.run import form_sentence
 from steerlab.analysis.study import _condition_key
 
 DPI = 90
@@ -331,6 +332,17 @@ def _verdict(result) -> str:
     else:
         parts.append(f"<p><b>Cause: {_e(c)}.</b> Retained (strongest first): "
                      f"{_e(', '.join(result.causes))}.</p>")  # fmt: skip
+    for name, alts in result.equally_good.items():
+        others = ", ".join(a["name"] for a in alts)
+        rows_eq = [[_e(a["name"]), _e(a["form"]), _n(a["held_out_gain_minus2loglik"], 4),
+                    _n(a["delta_bic"], 4), f"{_n(a['worse_by'], 3)} ± {_n(a['se'], 2)}"]
+                   for a in alts]  # fmt: skip
+        parts.append(
+            f"<p><b>The data cannot tell {_e(name)} from {_e(others)}</b>: they explain the "
+            "data equally well (the criterion differs by less than two of its standard "
+            "errors). Both are possible; the evidence for each alternative:</p>"
+            + _table(["alternative", "form", "held-out gain", "ΔBIC", "worse by"], rows_eq)
+        )
     rows = []
     for name in result.causes:
         for p in result.candidates.get(name, {}).get("parameters", []):
@@ -391,6 +403,8 @@ def _candidate_table(result) -> str:
             f"{p['parameter']} = {_n(p['value'], 3)} ± {_n(p['se'], 2)} {p['unit']}"
             for p in d.get("parameters", [])
         )
+        if d.get("forms_minus2loglik"):
+            params = f"form: {form_sentence(d)}; {params}"
         rows.append([
             _e(name), params, _n(d.get("delta_bic"), 4),
             _n(d.get("held_out_gain_minus2loglik"), 4),

