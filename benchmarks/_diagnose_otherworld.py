@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import Any
 
 # The diagnosis' name for each of the world's mechanism kinds.
 FAMILY_NAME = {
@@ -22,9 +23,9 @@ FAMILY_NAME = {
     "grip_stiffness": "grip_scheduled_stiffness",
     "drift": "drift",
 }
-STUDY = {"subjects": 2, "conditions": ("BT18", "BT8", "PT"), "fs_hz": 250.0}
+STUDY: dict[str, Any] = {"subjects": 2, "conditions": ("BT18", "BT8", "PT"), "fs_hz": 250.0}
 # For the tests: one subject, one condition, one period per trial.
-SMALL_STUDY = {"subjects": 1, "conditions": ("PT",), "fs_hz": 250.0, "n_periods": 1,
+SMALL_STUDY: dict[str, Any] = {"subjects": 1, "conditions": ("PT",), "fs_hz": 250.0, "n_periods": 1,
                "run_in_s": (3.0, 6.0)}  # fmt: skip
 # --quick: one form per family (the world's HIDDEN set, issue 18's table).
 QUICK_FORMS = {
@@ -73,7 +74,7 @@ def make_study(
 
 def cases(quick: bool, seeds: int, nulls: int, only: list[str] | None) -> list[tuple]:
     forms = QUICK_FORMS if quick else all_forms()
-    out = []
+    out: list[tuple] = []
     for kind, fs in forms.items():
         if only and kind not in only and FAMILY_NAME[kind] not in only:
             continue
