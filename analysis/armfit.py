@@ -135,9 +135,13 @@ class AdmittanceEstimate(Protocol):
     band mixes its bins) and ``H_variance`` (the variance of Ĥ, for the standard errors).
     """
 
-    frequencies_hz: np.ndarray
-    H: np.ndarray
-    coherence: np.ndarray
+    # Read-only (properties): the estimates are frozen dataclasses.
+    @property
+    def frequencies_hz(self) -> np.ndarray: ...
+    @property
+    def H(self) -> np.ndarray: ...
+    @property
+    def coherence(self) -> np.ndarray: ...
 
 
 WEIGHTINGS = ("inverse_variance", "paper")

@@ -35,11 +35,16 @@ import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import nullcontext
+from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from steerlab.benchmarks import _diagnose_otherworld as ow
 from steerlab.benchmarks._diagnose_otherworld import time_summary
 from steerlab.benchmarks.machine import machine
+
+if TYPE_CHECKING:  # the diagnosis is imported where it runs (in the worker)
+    from steerlab.analysis.diagnosis.run import DiagnosisResult
 
 MODERATE = {
     "reflex_delay": 6.0,
@@ -86,7 +91,7 @@ def mechanisms_for(name: str | None, magnitude: float):
 
     if name is None:
         return m.Mechanisms()
-    one = {
+    one: Any = {
         "reflex_delay": lambda v: m.ReflexDelay(k_p=v, k_v=v / 10.0),
         "coulomb_friction": lambda v: m.CoulombFriction(torque_nm=v),
         "stiffness_nonlinearity": lambda v: m.StiffnessNonlinearity(k3_nm_per_rad3=v),
@@ -95,7 +100,7 @@ def mechanisms_for(name: str | None, magnitude: float):
         "grip_scheduled_stiffness": lambda v: m.GripScheduledStiffness(gain=v),
         "drift": lambda v: m.Drift(rate_per_trial=v),
     }[name](magnitude)
-    return m.Mechanisms(**{name: one})
+    return replace(m.Mechanisms(), **{name: one})
 
 
 def protocol_text(conditions: tuple[str, ...] = CONDITIONS, fs_hz: float = 200.0) -> str:
@@ -136,7 +141,7 @@ def make_study(
     return root / "c"
 
 
-def _diagnose(data: Path) -> tuple[object | None, str | None, float, float]:
+def _diagnose(data: Path) -> tuple[DiagnosisResult | None, str | None, float, float]:
     """(result or None, error or None, wall s, CPU s) of one diagnosis with one job."""
     from steerlab.analysis.diagnosis import run_diagnosis
 

@@ -339,22 +339,22 @@ def distortion_table(
                         a[2] += float(np.sum(np.real(z1[ch, m] * np.conj(z2[ch, m]))))
                         a[3] += float(np.count_nonzero(m))
     rows = []
-    for (cond, cls, ch, r), (p, n, x, nx) in sorted(
+    for (cond, cls, channel, band), (power, n_bins, cross, n_cross) in sorted(
         acc.items(), key=lambda kv: (_condition_key(kv[0][0]), kv[0][1:])
     ):
-        if n == 0:
+        if n_bins == 0:
             continue
         rows.append(
             {
                 "condition": cond,
                 "lines": cls,
-                "channel": ch,
-                "f_lo_Hz": FREQ_EDGES_HZ[r],
-                "f_hi_Hz": FREQ_EDGES_HZ[r + 1],
-                "n_bins": int(n),
-                "power_vs_noise": p / n,
-                "repeatable_vs_noise": x / nx if nx else None,
-                "repeatable_z": x / np.sqrt(nx / 2.0) if nx else None,
+                "channel": channel,
+                "f_lo_Hz": FREQ_EDGES_HZ[band],
+                "f_hi_Hz": FREQ_EDGES_HZ[band + 1],
+                "n_bins": int(n_bins),
+                "power_vs_noise": power / n_bins,
+                "repeatable_vs_noise": cross / n_cross if n_cross else None,
+                "repeatable_z": cross / np.sqrt(n_cross / 2.0) if n_cross else None,
             }
         )
     return {"rows": rows, "classes": list(LINE_CLASSES), "freq_edges_Hz": list(FREQ_EDGES_HZ)}

@@ -40,6 +40,7 @@ import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -190,7 +191,7 @@ def fit_nested(
     10⁴ units of −2 log L worse than the baseline it contains. A candidate must never look
     worse than the model it extends.
     """
-    opts = {"fix_mechanisms": fix_mechanisms, "max_iter": max_iter}
+    opts: dict[str, Any] = {"fix_mechanisms": fix_mechanisms, "max_iter": max_iter}
     fit = fit_model(trials, spec, noise, arms0, x0=x0, **opts)
     ref = 2.0 * sum(evaluate_cost(trials, spec, noise, fallback_arms, fallback_x).values())
     if ref < fit.m2ll:
@@ -654,7 +655,7 @@ def select(
     )
 
 
-def _abandon(executor: cf.ProcessPoolExecutor) -> None:
+def _abandon(executor: cf.Executor) -> None:
     """Stop a pool whose work is no longer wanted: queued work is cancelled and the workers
     still busy are terminated (shutdown alone would wait for them)."""
     executor.shutdown(wait=False, cancel_futures=True)

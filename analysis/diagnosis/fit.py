@@ -96,7 +96,7 @@ class ModelSpec:
     def specs(self) -> list:
         return [p for c in self.free for p in c.params]
 
-    def mechanisms(self, x: Sequence[float]) -> Mechanisms:
+    def mechanisms(self, x: Sequence[float] | np.ndarray) -> Mechanisms:
         m = self.base
         i = 0
         for c in self.free:
@@ -262,8 +262,8 @@ def noise_model(trials: Sequence[TrialData], reference: dict[str, np.ndarray]) -
         empty = dof == 0
         if empty.any() and (~empty).any():
             idx = np.flatnonzero(~empty)
-            for b in np.flatnonzero(empty):
-                S[b] = S[idx[np.argmin(np.abs(idx - b))]]
+            for hole in np.flatnonzero(empty):
+                S[hole] = S[idx[np.argmin(np.abs(idx - hole))]]
         tr = np.real(S[:, 0, 0] + S[:, 1, 1])
         S[:, 0, 0] += 1e-9 * tr + 1e-300
         S[:, 1, 1] += 1e-9 * tr + 1e-300

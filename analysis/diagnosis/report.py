@@ -272,8 +272,8 @@ def fig_residual_views(comp: dict, drift_rate: float | None) -> Figure:
     if drift_rate is not None:
         idx = np.array([r["trial_index"] for r in rows if r["trial_index"] is not None])
         if idx.size:
-            x = np.linspace(idx.min(), idx.max(), 50)
-            a3.plot(x, 100 * drift_rate * (x - x.mean()), color="k", lw=1, label="drift fitted")
+            xs = np.linspace(idx.min(), idx.max(), 50)
+            a3.plot(xs, 100 * drift_rate * (xs - xs.mean()), color="k", lw=1, label="drift fitted")
             a3.legend(fontsize=7)
     a3.set_xlabel("trial index in the session (● k_i, □ k_c; colour: condition)")
     a3.set_ylabel("stiffness vs its condition's mean (%)")

@@ -699,8 +699,10 @@ def _drift_gain(setup: Setup, sel: Selection, drift: DriftResult) -> dict:
             if not other or t.trial_index is None:
                 continue
             o = other[0]
+            o_index = o.trial_index
+            assert o_index is not None  # (filtered above)
             arm = final.arms[o.label]
-            f = (1 + drift.rate * (t.trial_index - 1)) / (1 + drift.rate * (o.trial_index - 1))
+            f = (1 + drift.rate * (t.trial_index - 1)) / (1 + drift.rate * (o_index - 1))
             with C.few_remnants([t]):
                 th_b, td_b = C.simulated_segment(t, arm, mech)
                 th_a, td_a = C.simulated_segment(

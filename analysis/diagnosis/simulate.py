@@ -160,6 +160,7 @@ def simulated_spectra(trial: TrialData, arm: ArmParams, mechanisms: Mechanisms) 
     undo = np.ones(len(trial.bins), dtype=complex)
     if tau:
         shift = np.exp(-2j * np.pi * trial.freqs_hz * tau)
+        Y = np.asarray(Y)
         Y[1] = Y[1] * shift
         Y[3] = Y[3] * shift
         undo = 1.0 / shift
@@ -223,8 +224,8 @@ def simulated_segment(
         if trial.remnant and needs_remnant(mech)
         else [simulate_trial(trial, arm, mech)]
     )
-    th = sum(o["wheel_angle_rad"] for o in runs) / len(runs)
-    td = sum(o["driver_torque_Nm"] for o in runs) / len(runs)
+    th = np.asarray(sum(o["wheel_angle_rad"] for o in runs)) / len(runs)
+    td = np.asarray(sum(o["driver_torque_Nm"] for o in runs)) / len(runs)
     if tau:
         n = np.arange(len(td), dtype=float)
         td = np.interp(n - tau * trial.fs_hz, n, td)

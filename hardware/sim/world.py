@@ -26,6 +26,7 @@ same seeded 1-second blocks, so the two paths give the same signals.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
+from typing import Protocol
 
 import numpy as np
 from numba import njit
@@ -257,6 +258,15 @@ def _advance(
         out[4, j] = tm_reported
 
 
+class NoiseSource(Protocol):
+    """What a world draws its exogenous signals from, a block of ``block`` samples at a time
+    (:class:`NoiseBlocks`; the diagnosis replays recorded ones)."""
+
+    block: int
+
+    def next_block(self) -> dict[str, np.ndarray]: ...
+
+
 class NoiseBlocks:
     """Seeded exogenous signals, produced in 1-second blocks with filter states carried over.
 
@@ -383,7 +393,7 @@ class World:
         self.ring_s = np.zeros(m.sensor_delay_samples(cfg.fs_hz))
         self.x = np.zeros(4)
         self.st = np.zeros(N_STATE)
-        self.noise = NoiseBlocks(cfg, behaviour, left_share, seed, schedule)
+        self.noise: NoiseSource = NoiseBlocks(cfg, behaviour, left_share, seed, schedule)
         self._blk: dict[str, np.ndarray] | None = None
         self._dpar = np.zeros((0, 4))
         self._truth: np.ndarray | None = None  # (block, len(TRUTH_CHANNELS)) when scheduled
