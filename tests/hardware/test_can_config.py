@@ -95,6 +95,7 @@ def test_good_file_values_and_defaults(tmp_path):
         ),
         ("gear_ratio = 3.0", "gear_ratio = 0", "drive", "gear_ratio", "> 0"),
         ("gear_ratio = 3.0", "gear_ratio = nan", "drive", "gear_ratio", "finite"),
+        ("sign = -1", "sign = -1\nsdo_timeout_s = 0", "drive", "sdo_timeout_s", "> 0"),
         ("sign = -1", "sign = 0", "drive", "sign", "expected one of 1, -1"),
         (
             "sign = -1",

@@ -355,6 +355,15 @@ def test_no_drive_on_the_bus(make_rig):
     assert time.monotonic() - t0 < 2.0  # SDO timeouts, not hangs
 
 
+def test_sdo_timeout_is_the_rig_files(make_rig):
+    rig = make_rig(with_sim=False, sdo_timeout_s=1.0)
+    t0 = time.monotonic()
+    with pytest.raises(DriveEnableError, match="no SDO answer"):
+        rig.drive.enable()
+    # canopen's own 0.3 s (one retry) would have given up after about 0.6 s.
+    assert time.monotonic() - t0 >= 1.0
+
+
 def test_heartbeat_loss_detected_within_the_configured_time(make_rig):
     rig = make_rig()
     drive = rig.drive
