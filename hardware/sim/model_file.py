@@ -155,9 +155,13 @@ def mechanisms_from_model(data: dict, where: str = "model") -> Mechanisms:
         allowed = {f.name for f in fields(cls)}
         params = {k: v for k, v in vals.items() if k in allowed}
         for k, v in params.items():
+            if k == "form":  # the family's law (hardware.sim.mechanisms), by name
+                if not isinstance(v, str):
+                    raise ModelFileError(f"{where}: mechanisms.{name}.form must be a string")
+                continue
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
                 raise ModelFileError(f"{where}: mechanisms.{name}.{k} must be a finite number")
-        out[name] = {k: float(v) for k, v in params.items()}
+        out[name] = {k: v if k == "form" else float(v) for k, v in params.items()}
     try:
         return Mechanisms.from_dict(out)
     except (TypeError, ValueError) as e:
