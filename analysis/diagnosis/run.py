@@ -703,10 +703,11 @@ def _drift_gain(setup: Setup, sel: Selection, drift: DriftResult) -> dict:
             assert o_index is not None  # (filtered above)
             arm = final.arms[o.label]
             f = drift.factor(t.trial_index) / drift.factor(o_index)
+            f_c = f if "k_c" in drift.form.stiffnesses else 1.0
             with C.few_remnants([t]):
                 th_b, td_b = C.simulated_segment(t, arm, mech)
                 th_a, td_a = C.simulated_segment(
-                    t, replace(arm, k_i=arm.k_i * f, k_c=arm.k_c * f), mech
+                    t, replace(arm, k_i=arm.k_i * f, k_c=arm.k_c * f_c), mech
                 )
             pairs_b.append((t, th_b, td_b))
             pairs_a.append((t, th_a, td_a))

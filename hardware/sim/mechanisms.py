@@ -191,11 +191,13 @@ class GripScheduledStiffness:
 
 
 DRIFT_FORMS = ("linear", "stepwise")
+DRIFT_STIFFNESSES = ("k_i,k_c", "k_i")
 
 
 @dataclass(frozen=True)
 class Drift:
-    """Parameters change over the session: k_i and k_c scale by a factor of the trial index,
+    """Parameters change over the session: the stiffnesses ``stiffnesses`` (k_i and k_c, the
+    default, or k_i alone) scale by a factor of the trial index,
 
     - ``linear`` (default): 1 + rate·(trial_index − 1);
     - ``stepwise``: 1 before trial ``at_trial``, 1 + ``step`` from it on.
@@ -205,9 +207,11 @@ class Drift:
     form: str = "linear"
     step: float = 0.0
     at_trial: int = 2
+    stiffnesses: str = "k_i,k_c"
 
     def __post_init__(self) -> None:
         _check_form("drift", self.form, DRIFT_FORMS)
+        _check_form("drift stiffnesses", self.stiffnesses, DRIFT_STIFFNESSES)
         # A model file's numbers are read as floats; the trial index is whole.
         object.__setattr__(self, "at_trial", int(self.at_trial))
 

@@ -299,3 +299,21 @@ def test_forms_round_trip_through_a_model_file():
     text = world_model_text({}, mech)
     data = tomllib.loads(text)
     assert mechanisms_from_model(data) == mech
+
+
+def test_stepwise_drift_of_k_i_alone_leaves_the_contact(fast_protocol):
+    from steerlab.hardware.sim.physiology import make_population
+    from steerlab.hardware.sim.rig import SimulatedSubject
+    from steerlab.protocols.session import build_plan
+
+    subj = SimulatedSubject(make_population(1, seed=0)[0])
+    plan = build_plan(fast_protocol, 1)
+    drift = Drift(form="stepwise", step=0.3, at_trial=2, stiffnesses="k_i")
+    setup = plan.setup(plan.trials[1])
+    assert setup.spec.trial_index >= 2
+    plain = subj.behaviour(setup, WorldConfig(fs_hz=200.0)).arm
+    drifted = subj.behaviour(
+        setup, WorldConfig(fs_hz=200.0, mechanisms=Mechanisms(drift=drift))
+    ).arm
+    assert drifted.k_i == pytest.approx(plain.k_i * 1.3)
+    assert drifted.k_c == plain.k_c
