@@ -145,7 +145,9 @@ FRICTION_FORMS = (
     Form(
         "viscous plus Coulomb",
         (("breakaway_ratio", 1.0),),
-        (FRICTION_TORQUE, ParamSpec("viscous_nms_per_rad", "Nms_per_rad", 0.02, -1.0, 5.0)),
+        # b_v ≥ 0: friction dissipates. Free to go negative, it took up part of a torque
+        # sensor's gain error (tests/diagnosis/test_diagnosis_hidden.py).
+        (FRICTION_TORQUE, ParamSpec("viscous_nms_per_rad", "Nms_per_rad", 0.02, 0.0, 5.0)),
     ),
 )
 # Stiffening: cubic in absolute terms (k3), or relative to each trial's k_i with the
