@@ -132,9 +132,9 @@ REFLEX_FORMS = tuple(
     for d in REFLEX_DELAYS_S
 )
 
-# Friction on the wheel's velocity (the other forms' settings: the breakaway torque of a
-# Stribeck curve twice the sliding one, falling off over 0.05 rad/s, the Stribeck velocity
-# of a lubricated steering column's order; a viscous term fitted with the dry one).
+# Friction on the wheel's velocity. The Stribeck form holds one shape (breakaway torque twice
+# the sliding one, falling off over 0.05 rad/s; the independent world's default is close to
+# it, 2.08 × over 0.05 rad/s): a curve of another shape is fitted by the nearest form.
 FRICTION_TORQUE = ParamSpec("torque_nm", "Nm", 0.02, 0.0, 5.0)
 FRICTION_FORMS = (
     Form("Coulomb", (("breakaway_ratio", 1.0), ("viscous_nms_per_rad", 0.0))),
