@@ -138,6 +138,8 @@ FAMILY_CASES = [
 ]
 
 
+# End-to-end diagnoses: the slow tier (main's pyproject, issue 16 item 6).
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("hidden", "family", "form", "truth", "options"),
     FAMILY_CASES,
