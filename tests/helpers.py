@@ -69,3 +69,21 @@ def assert_rig_error(tmp_path: Path, text: str, section: str, field: str, expect
     message = str(err)
     assert message.startswith(f"{path}: [{section}] {field}: "), message
     assert expected in message, message
+
+
+def cli(*args) -> tuple[int, str]:
+    """``steerlab ARGS`` in this process: (exit code, stderr). What a subprocess would run,
+    without its two seconds of imports; the tests that are about the process itself (signals,
+    locks held by another process, the installed entry point) still start one."""
+    import contextlib
+    import io
+
+    from steerlab.app.cli import main
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as e:  # argparse's refusals
+            code = int(e.code or 0)
+    return code, err.getvalue()

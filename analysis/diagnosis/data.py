@@ -177,20 +177,26 @@ def transient_projector(trial: TrialData) -> Callable[[np.ndarray], np.ndarray]:
     """
     if trial._projector is not None:
         return trial._projector
-    parts = []
+    # One (n_bins, TRANSIENT_ORDER) matrix of every band's orthonormal polynomial basis, and
+    # the band boundaries: the projection is then a few whole-array operations instead of a
+    # Python loop over the bands (it runs once per simulation in the fits).
+    n = len(trial.bins)
+    Q_all = np.zeros((n, TRANSIENT_ORDER))
+    starts = []
     for b in range(trial.n_bands):
         idx = np.flatnonzero(trial.band == b)
         x = (trial.bins[idx] - trial.bins[idx].mean()) / max(1.0, np.ptp(trial.bins[idx]) / 2)
         P = np.stack([x**j for j in range(TRANSIENT_ORDER)], axis=1)
-        Q, _ = np.linalg.qr(P)
-        parts.append((idx[0], idx[-1] + 1, Q))
+        Q, _ = np.linalg.qr(P)  # (len(idx), min(len(idx), TRANSIENT_ORDER))
+        Q_all[idx, : Q.shape[1]] = Q
+        starts.append(idx[0])
+    first = np.array(starts)
+    band = trial.band
 
     def project(v: np.ndarray) -> np.ndarray:
-        out = np.array(v, dtype=complex, copy=True)
-        for lo, hi, Q in parts:
-            seg = out[..., lo:hi]
-            out[..., lo:hi] = seg - (seg @ Q) @ Q.T
-        return out
+        v = np.asarray(v, dtype=complex)
+        coef = np.add.reduceat(v[..., :, None] * Q_all, first, axis=-2)  # (..., bands, order)
+        return v - np.einsum("...bj,bj->...b", coef[..., band, :], Q_all)
 
     trial._projector = project
     return project

@@ -20,8 +20,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
+from steerlab.hardware.sim.filters import first_order_lfilter
 from steerlab.hardware.sim.physiology import ConditionBehaviour
 from steerlab.protocols.session import ConditionSchedule
 
@@ -98,7 +98,7 @@ class LogLag:
         y = np.empty_like(target)
         for j, a in enumerate(self.alpha):
             # y[k] = y[k−1] + a (target[k] − y[k−1]); zi carries y[k−1] across blocks.
-            y[:, j], _ = lfilter([a], [1.0, a - 1.0], target[:, j], zi=[(1.0 - a) * self.state[j]])
+            y[:, j], _ = first_order_lfilter(a, a - 1.0, target[:, j], (1.0 - a) * self.state[j])
         self.state = y[-1].copy()
         v = np.exp(y)
         return {

@@ -31,9 +31,9 @@ from typing import Protocol
 import numpy as np
 from numba import njit
 from scipy.linalg import expm
-from scipy.signal import lfilter
 
 from steerlab.hardware.safety import SafetyLimits, inputs_finite, loop_command
+from steerlab.hardware.sim.filters import first_order_lfilter
 from steerlab.hardware.sim.mechanisms import Mechanisms
 from steerlab.hardware.sim.physiology import ConditionBehaviour
 from steerlab.hardware.sim.schedule import ARM_COLUMNS, BehaviourSchedule
@@ -356,7 +356,7 @@ class NoiseBlocks:
 
     def _ar1(self, a: float, e: np.ndarray, zi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # y[k] = a y[k−1] + sqrt(1−a²) e[k]: unit variance when stationary.
-        y, zf = lfilter([np.sqrt(1 - a * a)], [1.0, -a], e, zi=zi)
+        y, zf = first_order_lfilter(np.sqrt(1 - a * a), -a, e, zi[0])
         return y, zf
 
     def next_block(self) -> dict[str, np.ndarray]:

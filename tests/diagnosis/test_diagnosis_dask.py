@@ -20,6 +20,7 @@ def _found(result) -> str:
     return json.dumps(d, sort_keys=True)
 
 
+@pytest.mark.slow
 def test_a_dask_local_cluster_gives_the_in_process_diagnosis(tmp_path, monkeypatch):
     pytest.importorskip("distributed", reason="Dask is the optional extra steerlab[dask]")
     from steerlab.analysis.executors import executor_for

@@ -70,6 +70,7 @@ def hidden_study(root: Path, mech: m.Mechanisms, seed: int, n_subjects: int = 1)
     return root / "c"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", CASES, ids=[f"case{i}" for i in range(len(CASES))])
 def test_hidden_mechanism_is_named_recovered_and_gains(case, tmp_path_factory):
     name, mech, param, truth, seed, n_subjects = case
@@ -97,6 +98,13 @@ def test_hidden_mechanism_is_named_recovered_and_gains(case, tmp_path_factory):
     # Outputs exist and are self-describing.
     d = json.loads((root / "out" / "diagnosis.json").read_text())
     assert d["cause"] == name and name in d["causes"]
+    if name == "sensor_delay":
+        # The retained model is fitted to its optimum: a later step's candidate improves it by
+        # no more than noise. (The delay's fit once ended with a trial's contact spring at its
+        # bound, and every later candidate then "improved" it by 13 000 units.)
+        later = [s["delta_minus2loglik"] for c in d["candidates"].values()
+                 for s in c.get("later_steps", [])]  # fmt: skip
+        assert later and max(later) < 50, later
     if name == "reflex_delay":
         # The simulator's reflex (40 ms, van der Helm's activation) is one of the family's
         # forms: it is among those consistent with the data, and the other activation is not
@@ -109,6 +117,7 @@ def test_hidden_mechanism_is_named_recovered_and_gains(case, tmp_path_factory):
     assert f"[mechanisms.{name}]" in (root / "out" / "model.toml").read_text()
 
 
+@pytest.mark.slow
 def test_null_data_give_none(tmp_path_factory):
     root = tmp_path_factory.mktemp("run")
     res = run_diagnosis(hidden_study(root, m.Mechanisms(), seed=21), root / "out")
@@ -118,6 +127,7 @@ def test_null_data_give_none(tmp_path_factory):
     assert "\n[mechanisms." not in (root / "out" / "model.toml").read_text()
 
 
+@pytest.mark.slow
 def test_an_effect_outside_the_candidates_is_unexplained(tmp_path_factory):
     """A torque sensor reading 10 % high: no candidate models a gain error."""
     import numpy as np

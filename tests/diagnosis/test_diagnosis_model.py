@@ -46,6 +46,7 @@ def study(root: Path, world: WorldConfig, seed: int) -> Path:
     return root / "c"
 
 
+@pytest.mark.slow
 def test_extended_model_is_the_new_baseline(tmp_path):
     hidden = m.Mechanisms(reflex_delay=m.ReflexDelay(k_p=6.0, k_v=0.6))
     first = run_diagnosis(

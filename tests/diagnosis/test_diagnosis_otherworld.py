@@ -52,6 +52,7 @@ def test_a_stage_out_of_time_says_what_it_left_undone(tmp_path, monkeypatch):
     assert len(undone) == 1 and "reflex_delay" in undone[0] and "not tried" in undone[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("text", "name", "conditions"),
     [
@@ -70,6 +71,7 @@ def test_mechanism_hidden_in_another_world_is_named(tmp_path, text, name, condit
     assert res.cause == name, res.summary()
 
 
+@pytest.mark.slow
 def test_reflex_family_names_the_reflex_and_its_best_form(tmp_path):
     """Issue 18's reflex (35 ms delay, first-order activation of 30 ms, position and velocity
     feedback): not one of Steerlab's implementation's settings (40 ms, 2.17 Hz second-order

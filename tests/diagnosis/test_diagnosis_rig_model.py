@@ -72,6 +72,7 @@ def study(tmp_path_factory) -> tuple[Path, Path]:
     return root / "s", rig
 
 
+@pytest.mark.slow
 def test_measured_wheel_explains_what_the_nominal_one_names(study, tmp_path, capsys):
     data, rig = study
     # The nominal wheel: the rig's departure is named, on the wheel's side.

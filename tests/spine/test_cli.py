@@ -13,7 +13,7 @@ import pytest
 
 from steerlab.protocols.latin_square import williams_square
 from steerlab.protocols.perturbation import design_multisine
-from tests.helpers import ROOT
+from tests.helpers import ROOT, cli
 
 CONDS = ["RT", "BT18", "BT12", "BT8", "BT5", "PT"]
 
@@ -52,34 +52,29 @@ def test_version_and_one_import_name(tmp_path):
 
 def test_simulate_refuses_existing_output_and_bad_input(tmp_path, fast_protocol_file):
     out = tmp_path / "s"
-    assert (
-        steerlab(
-            "simulate", "--subjects", 1, "--out", out, "--protocol", fast_protocol_file
-        ).returncode
-        == 0
-    )
+    sim = ("simulate", "--subjects", 1, "--out", out, "--protocol", fast_protocol_file)
+    # Once as the user runs it (a process of its own), then in this process.
+    assert steerlab(*sim).returncode == 0
     before = (out / "S01.h5").stat().st_mtime_ns
-    r = steerlab("simulate", "--subjects", 1, "--out", out, "--protocol", fast_protocol_file)
-    assert r.returncode == 2 and "--overwrite" in r.stderr
+    code, err = cli(*sim)
+    assert code == 2 and "--overwrite" in err
     assert (out / "S01.h5").stat().st_mtime_ns == before
-    r = steerlab(
-        "simulate", "--subjects", 1, "--out", out, "--overwrite", "--protocol", fast_protocol_file
-    )
-    assert r.returncode == 0 and (out / "S01.h5").stat().st_mtime_ns != before
-    r = steerlab(
-        "simulate", "--subjects", 1, "--out", out, "--resume", "--protocol", fast_protocol_file
-    )
-    assert r.returncode == 0  # nothing left to do
+    code, err = cli(*sim, "--overwrite")
+    assert code == 0 and (out / "S01.h5").stat().st_mtime_ns != before
+    code, err = cli(*sim, "--resume")
+    assert code == 0  # nothing left to do
     bad = tmp_path / "bad.toml"
     bad.write_text(fast_protocol_file.read_text().replace("run_in_s = 2.0", "run_in_s = -1"))
-    r = steerlab("simulate", "--subjects", 1, "--out", tmp_path / "n", "--protocol", bad)
-    assert r.returncode == 2
-    assert str(bad) in r.stderr and "run_in_s" in r.stderr and "Traceback" not in r.stderr
+    code, err = cli("simulate", "--subjects", 1, "--out", tmp_path / "n",
+                      "--protocol", bad)  # fmt: skip
+    assert code == 2
+    assert str(bad) in err and "run_in_s" in err and "Traceback" not in err
     assert not (tmp_path / "n").exists()
-    r = steerlab("simulate", "--subjects", 0, "--out", tmp_path / "z")
-    assert r.returncode == 2 and "--subjects" in r.stderr
+    code, err = cli("simulate", "--subjects", 0, "--out", tmp_path / "z")
+    assert code == 2 and "--subjects" in err
 
 
+@pytest.mark.slow
 def test_six_subjects_then_export_gives_108_trials_as_designed(tmp_path):
     """The issue's acceptance run, at the default protocol's 1 kHz."""
     out, csv = tmp_path / "study", tmp_path / "csv"

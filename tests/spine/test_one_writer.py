@@ -22,7 +22,7 @@ from steerlab.app.gui.controller import ControlError, SessionController
 from steerlab.protocols.datafile import DataFileError, SessionFile, SessionWriter
 from steerlab.protocols.protocol import load_protocol
 from steerlab.protocols.writelock import WriterLock, live_writer
-from tests.helpers import ROOT
+from tests.helpers import ROOT, cli
 from tests.spine.test_crash_recovery import _protocol, steerlab
 
 
@@ -66,9 +66,8 @@ def test_a_second_writer_is_refused_naming_the_first(tmp_path, lenient_rig):
             (*run, "--resume"),
         ):
             assert first.poll() is None, (tmp_path / "first.log").read_text()
-            r = steerlab(*args)
-            assert r.returncode == 2, (args, r.stderr, (tmp_path / "first.log").read_text())
-            msg = r.stderr
+            code, msg = cli(*args)  # this test's process: another one than the first's
+            assert code == 2, (args, msg, (tmp_path / "first.log").read_text())
             assert str(path) in msg and f"process {first.pid}" in msg, msg
             assert "steerlab run" in msg and re.search(r"since \d{4}-\d\d-\d\dT", msg), msg
         # The GUI's session start says the same.
@@ -78,8 +77,8 @@ def test_a_second_writer_is_refused_naming_the_first(tmp_path, lenient_rig):
         with pytest.raises(DataFileError, match=f"process {first.pid}"):
             SessionWriter(path)
         # Readers stay allowed, during the session.
-        r = steerlab("export", out, "--out", tmp_path / "csv")
-        assert r.returncode == 0, r.stderr
+        code, err = cli("export", out, "--out", tmp_path / "csv")
+        assert code == 0, err
         assert len(list((tmp_path / "csv").glob("*.csv"))) == 1
         # The live file was not touched: the same bytes, no copies beside it.
         assert path.read_bytes() == before
@@ -110,14 +109,14 @@ def test_overwrite_removes_the_earlier_study_and_only_that(tmp_path, fast_protoc
     # nothing.
     with h5py.File(out / "notes.h5", "w") as f:
         f["x"] = [1]
-    r = steerlab(*sim, "--subjects", 2, "--overwrite")
-    assert r.returncode == 2 and "notes.h5" in r.stderr, r.stderr
+    code, err = cli(*sim, "--subjects", 2, "--overwrite")
+    assert code == 2 and "notes.h5" in err, err
     assert sorted(p.name for p in out.glob("*.h5")) == ["S01.h5", "S02.h5", "S03.h5", "notes.h5"]
     (out / "notes.h5").unlink()
     # A smaller study replacing a bigger one: S03 of the earlier study is removed, so a report
     # of the folder never mixes the two.
     time.sleep(1.1)
-    r = steerlab(*sim, "--subjects", 2, "--overwrite")
-    assert r.returncode == 0, r.stderr
+    code, err = cli(*sim, "--subjects", 2, "--overwrite")
+    assert code == 0, err
     assert sorted(p.name for p in out.iterdir()) == ["S01.h5", "S02.h5"]
     assert SessionFile(out / "S01.h5").attrs["created_utc"] != old
