@@ -267,7 +267,9 @@ class Mechanisms:
             if sn.form == "exponential":
                 if sn.rise <= 0.0:
                     raise ValueError("stiffness_nonlinearity: exponential form needs rise > 0")
-                p[w.P_THETA_S] = sn.theta_scale_rad / np.arccosh(1.0 + sn.rise)
+                # arccosh(1 + r), accurate for the tiny r a fit starting at 0 tries
+                r = sn.rise
+                p[w.P_THETA_S] = sn.theta_scale_rad / np.log1p(r + np.sqrt(r * (2.0 + r)))
             else:
                 p[w.P_THETA_S] = sn.theta_scale_rad
         p[w.P_KI] = behaviour.arm.k_i
