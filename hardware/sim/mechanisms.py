@@ -268,8 +268,8 @@ class Mechanisms:
                 if sn.rise <= 0.0:
                     raise ValueError("stiffness_nonlinearity: exponential form needs rise > 0")
                 # arccosh(1 + r), accurate for the tiny r a fit starting at 0 tries
-                r = sn.rise
-                p[w.P_THETA_S] = sn.theta_scale_rad / np.log1p(r + np.sqrt(r * (2.0 + r)))
+                rise = sn.rise
+                p[w.P_THETA_S] = sn.theta_scale_rad / np.log1p(rise + np.sqrt(rise * (2.0 + rise)))
             else:
                 p[w.P_THETA_S] = sn.theta_scale_rad
         p[w.P_KI] = behaviour.arm.k_i
