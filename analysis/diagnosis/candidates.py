@@ -15,9 +15,12 @@ Parameters not listed are not fitted: with the perturbation's band they are poor
 together with the gains, and the gains are what tells whether the mechanism is there. A
 family's *forms* (:class:`Form`) set them instead, and the best-fitting form is chosen
 (:func:`analysis.diagnosis.engine.evaluate_candidate`): the reflex's delay (25–80 ms) and
-activation dynamics (van der Helm et al. 2002's 2.17 Hz / 0.7, or a fast 6 Hz / 1). The others
-have one form each (friction velocity scale 0.01 rad/s): further forms need their laws in the
-simulator's kernel (docs/diagnosis.md, "Mechanism families").
+activation dynamics (van der Helm et al. 2002's 2.17 Hz / 0.7, or a fast 6 Hz / 1); friction
+Coulomb, Stribeck or viscous plus Coulomb; stiffening cubic, exponential or piecewise; the
+actuator's lag first order, second order or a pure delay; the grip map linear or a power law.
+A form may fit its own parameters (``Form.params``: the viscous friction's b_v, the
+stiffening's relative rise). The laws are :mod:`hardware.sim.mechanisms`'. Drift's forms
+(linear, stepwise) are in :mod:`analysis.diagnosis.drift`.
 
 ``drift`` is not fitted on the signals: every trial has its own arm parameters, which absorb
 any change between trials. It is fitted on those parameters (:mod:`analysis.diagnosis.drift`).
@@ -67,10 +70,12 @@ class ParamSpec:
 @dataclass(frozen=True)
 class Form:
     """One form of a mechanism family: the slot's settings that are not fitted but chosen
-    (the best of the family's forms, by −2 log L on all trials)."""
+    (the best of the family's forms, by −2 log L on all trials), and, where the form's law has
+    other parameters than the family's first form, the parameters it fits."""
 
     name: str
-    fixed: tuple[tuple[str, float], ...] = ()  # (field, value) of the mechanism's slot
+    fixed: tuple[tuple[str, float | str], ...] = ()  # (field, value) of the mechanism's slot
+    params: tuple[ParamSpec, ...] | None = None  # None: the family's
 
 
 DEFAULT_FORM = Form("default")
@@ -85,7 +90,16 @@ class Candidate:
     form: Form = DEFAULT_FORM  # the form this candidate is fitted in
 
     def with_form(self, form: Form) -> Candidate:
-        return replace(self, form=form)
+        return replace(self, form=form, params=self.params if form.params is None else form.params)
+
+    def form_of(self, mech: Mechanisms) -> Form:
+        """The family's form that ``mech``'s slot is in: the first whose fixed settings it has,
+        else the slot's settings as they are."""
+        slot = getattr(mech, self.name)
+        for f in self.forms:
+            if all(getattr(slot, k) == v for k, v in f.fixed):
+                return f
+        return DEFAULT_FORM  # the slot's own settings, the family's parameters
 
     def apply(self, mech: Mechanisms, coords: list[float], fs_ref: float) -> Mechanisms:
         slot = getattr(mech, self.name)
@@ -118,6 +132,53 @@ REFLEX_FORMS = tuple(
     for d in REFLEX_DELAYS_S
 )
 
+# Friction on the wheel's velocity. The Stribeck form holds one shape (breakaway torque twice
+# the sliding one, falling off over 0.05 rad/s; the independent world's default is close to
+# it, 2.08 × over 0.05 rad/s): a curve of another shape is fitted by the nearest form.
+FRICTION_TORQUE = ParamSpec("torque_nm", "Nm", 0.02, 0.0, 5.0)
+FRICTION_FORMS = (
+    Form("Coulomb", (("breakaway_ratio", 1.0), ("viscous_nms_per_rad", 0.0))),
+    Form(
+        "Stribeck (breakaway 2 × F_c, v_s 0.05 rad/s)",
+        (("breakaway_ratio", 2.0), ("stribeck_velocity_rad_s", 0.05), ("viscous_nms_per_rad", 0.0)),
+    ),
+    Form(
+        "viscous plus Coulomb",
+        (("breakaway_ratio", 1.0),),
+        # b_v ≥ 0: friction dissipates. Free to go negative, it took up part of a torque
+        # sensor's gain error (tests/diagnosis/test_diagnosis_hidden.py).
+        (FRICTION_TORQUE, ParamSpec("viscous_nms_per_rad", "Nms_per_rad", 0.02, 0.0, 5.0)),
+    ),
+)
+# Stiffening: cubic in absolute terms (k3), or relative to each trial's k_i with the
+# incremental stiffness (1 + rise) k_i reached at 0.02 rad (exponential) or beyond a break at
+# 0.01 rad (piecewise): deflections of the arm in these tasks are of that order.
+STIFFENING_FORMS = (
+    Form("cubic", (("form", "cubic"),)),
+    Form(
+        "exponential (stiffness (1 + rise) k_i at 0.02 rad)",
+        (("form", "exponential"), ("theta_scale_rad", 0.02)),
+        (ParamSpec("rise", "1", 0.05, 0.0, 50.0),),
+    ),
+    Form(
+        "piecewise (slope (1 + rise) k_i beyond 0.01 rad)",
+        (("form", "piecewise"), ("theta_scale_rad", 0.01)),
+        (ParamSpec("rise", "1", 0.05, -0.9, 50.0),),
+    ),
+)
+# The actuator: a first-order lag, a second-order one (ω_n = 1/τ, ζ 0.7, a servo drive's
+# current and velocity loops), or a pure delay (bus and processing time).
+LAG_TAU = ParamSpec("tau_s", "s", 0.02, 0.0, 0.995, start=0.02, transform="lag")
+LAG_FORMS = (
+    Form("first order", (("form", "first_order"),)),
+    Form("second order (ζ 0.7; τ = 1/ω_n)", (("form", "second_order"), ("zeta", 0.7))),
+    Form("pure delay", (("form", "delay"),), (ParamSpec("delay_s", "s", 0.001, 0.0, 0.1),)),
+)
+GRIP_FORMS = (
+    Form("linear", (("form", "linear"),)),
+    Form("power law (F/F̄)^gain", (("form", "power"),)),
+)
+
 CANDIDATES: tuple[Candidate, ...] = (
     Candidate(
         "reflex_delay",
@@ -131,20 +192,23 @@ CANDIDATES: tuple[Candidate, ...] = (
     ),
     Candidate(
         "coulomb_friction",
-        (ParamSpec("torque_nm", "Nm", 0.02, 0.0, 5.0),),
+        (FRICTION_TORQUE,),
         "the wheel's equation (Tp − Td = wheel dynamics × θ) fails by a torque opposing the "
         "velocity; odd-order distortion, relatively larger where the wheel moves little",
+        forms=FRICTION_FORMS,
     ),
     Candidate(
         "stiffness_nonlinearity",
         (ParamSpec("k3_nm_per_rad3", "Nm_per_rad3", 20.0, -5000.0, 50000.0),),
-        "odd-order distortion of the arm, growing with the cube of the deflection",
+        "odd-order distortion of the arm, growing with the deflection faster than linearly",
+        forms=STIFFENING_FORMS,
     ),
     Candidate(
         "actuator_lag",
-        (ParamSpec("tau_s", "s", 0.02, 0.0, 0.995, start=0.02, transform="lag"),),
+        (LAG_TAU,),
         "the wheel's equation fails by a phase lag of the motor torque that grows with "
         "frequency; the admittance θ/Td is unchanged",
+        forms=LAG_FORMS,
     ),
     Candidate(
         "sensor_delay",
@@ -157,6 +221,7 @@ CANDIDATES: tuple[Candidate, ...] = (
         (ParamSpec("gain", "1", 0.1, -10.0, 10.0),),
         "sidebands around the excited lines that follow the slow grip-force fluctuation "
         "within a trial",
+        forms=GRIP_FORMS,
     ),
 )
 CANDIDATE_NAMES: tuple[str, ...] = tuple(c.name for c in CANDIDATES) + ("drift",)

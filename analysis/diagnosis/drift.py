@@ -1,34 +1,54 @@
 """Drift: do the arm's stiffnesses change with the trial's position in the session?
 
-The simulator's drift scales k_i and k_c by (1 + r·(trial_index − 1)). Each trial has its own
-arm parameters in every model of the diagnosis, so drift never shows in a trial's signals; it
-shows in how those parameters move from trial to trial. Per subject × condition (the
-condition sets the stiffness), the logarithms of each trial's fitted k_i and k_c are modelled as
+The simulator's drift scales k_i and k_c by a factor f(trial_index) (:class:`Drift`). Each
+trial has its own arm parameters in every model of the diagnosis, so drift never shows in a
+trial's signals; it shows in how those parameters move from trial to trial. Per subject ×
+condition (the condition sets the stiffness), the logarithms of each trial's fitted k_i and
+k_c are modelled as
 
-    log k = a_cell,param + log(1 + r·(trial_index − 1)) + ε,   ε ~ N(0, σ²_param)
+    log k = a_cell,param + log f(trial_index) + ε,   ε ~ N(0, σ²_param)
 
-against the same without the drift term. The familiarization trial counts here (it is the
-first of its condition, so it lengthens the lever from one trial to two); trials whose order is
-unknown do not.
+against the same without the drift term. Drift is a family (issue 18 item 2): *linear*,
+f = 1 + r·(trial_index − 1), or *stepwise*, f = 1 before trial c and 1 + s from it on, for
+every change point c that some cell has trials on both sides of (elsewhere a step is the
+cells' own means); of k_i and k_c together (Steerlab's simulator) or of k_i alone (the term
+is then left out of log k_c). The familiarization trial counts here (it is the first of its
+condition, so it lengthens the lever from one trial to two); trials whose order is unknown
+do not.
 
-- Fit: r by bounded scalar minimisation of the concentrated −2 log L = Σ_param n log(RSS/n).
-- ΔBIC = Δ(−2 log L) + ln(n_observations).
-- Held out: every trial's log k predicted from the other trials of its cell, with r fitted
-  without that trial (leave-one-out); the gain is Σ_param n log(PRESS_no drift / PRESS_drift)
-  in −2 log L units.
-- Interval for r: where the profile −2 log L is within 3.84 of its minimum.
+- Fit: each form's parameter (r, or s at each c) by bounded scalar minimisation of the
+  concentrated −2 log L = Σ_param n log(RSS/n); the form with the lowest is the family's.
+  Forms within 3.84 of the best are reported as consistent with the data.
+- ΔBIC = Δ(−2 log L) + p ln(n_observations) + 2 ln K: p = 1 (linear) or 2 (stepwise: the
+  change point is a parameter, chosen on the data), and the family's prior shared among its
+  K forms.
+- Held out: every trial's log k predicted from the other trials of its cell, with the form and
+  its parameter chosen and fitted without that trial (leave-one-out); the gain is
+  Σ_param n log(PRESS_no drift / PRESS_drift) in −2 log L units.
+- The choice of form is paid for in BIC and again in every held-out fit: on simulated
+  stiffnesses without drift (2 subjects × 3 conditions × 2 repetitions, 1 % scatter;
+  tests/diagnosis/test_diagnosis_forms.py) 18 sessions of 100 passed with linear and stepwise
+  forms when the choice was paid for in neither, 5 of 100 as it is (the linear form alone, of
+  k_i and k_c: 4).
+- Interval for the parameter: where the profile −2 log L is within 3.84 of its minimum.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 
+from steerlab.hardware.sim.mechanisms import Drift
+
 R_BOUND = 0.1  # |r| per trial: ±10 % per trial is far beyond any plausible drift
+# A step of the stiffnesses: from halving to doubling.
+STEP_BOUNDS = (-0.5, 1.0)
+# Forms within this −2 log L of the best are consistent with the data (as the candidates').
+FORM_CONSISTENT_M2LL = 3.84
 PARAMS = ("k_i", "k_c")
 MIN_DBIC = 6.0  # "strong" evidence (Kass & Raftery), and the leave-one-out check as well
 MIN_HELD_OUT = 0.0
@@ -44,9 +64,58 @@ class TrialStiffness:
     k_c: float
 
 
+@dataclass(frozen=True)
+class DriftForm:
+    """A form of the drift family: linear (``at_trial`` None) or a step at ``at_trial``, of
+    k_i and k_c together or of k_i alone."""
+
+    at_trial: int | None = None
+    stiffnesses: tuple[str, ...] = PARAMS
+
+    @property
+    def name(self) -> str:
+        law = "linear" if self.at_trial is None else f"stepwise from trial {self.at_trial}"
+        return law + ("" if self.stiffnesses == PARAMS else " (k_i alone)")
+
+    @property
+    def mask(self) -> np.ndarray:
+        """Which of :data:`PARAMS` drift."""
+        return np.array([p in self.stiffnesses for p in PARAMS], dtype=float)
+
+    @property
+    def parameter(self) -> str:
+        return "rate_per_trial" if self.at_trial is None else "step"
+
+    def factor(self, idx: np.ndarray, v: float) -> np.ndarray:
+        if self.at_trial is None:
+            return 1.0 + v * (idx - 1.0)
+        return 1.0 + v * (idx >= self.at_trial)
+
+    def bounds(self, idx: np.ndarray) -> tuple[float, float]:
+        if self.at_trial is not None:
+            return STEP_BOUNDS
+        # The factor must stay positive over the session.
+        hi = min(R_BOUND, 0.99 / max(idx.max() - 1.0, 1.0)) if idx.max() > 1 else R_BOUND
+        return -hi, R_BOUND
+
+    @property
+    def n_params(self) -> int:
+        """Counted in BIC: the step's change point is a parameter (module docstring)."""
+        return 1 if self.at_trial is None else 2
+
+    def mechanism(self, v: float) -> Drift:
+        scope = ",".join(self.stiffnesses)
+        if self.at_trial is None:
+            return Drift(rate_per_trial=v, stiffnesses=scope)
+        return Drift(form="stepwise", step=v, at_trial=self.at_trial, stiffnesses=scope)
+
+
+LINEAR = DriftForm()
+
+
 @dataclass
 class DriftResult:
-    rate: float
+    rate: float  # the form's parameter: rate per trial (linear) or step (stepwise)
     ci95: tuple[float, float]
     se: float
     delta_m2ll: float  # no drift − drift (> 0: drift fits better)
@@ -57,14 +126,31 @@ class DriftResult:
     passed: bool
     reason: str
     rows: list[dict]
+    form: DriftForm = LINEAR
+    forms_m2ll: dict[str, float] = field(default_factory=dict)  # −2 log L of every form
+
+    @property
+    def forms_consistent(self) -> list[str]:
+        best = min(self.forms_m2ll.values(), default=0.0)
+        ranked = sorted(self.forms_m2ll.items(), key=lambda kv: kv[1])
+        return [k for k, v in ranked if v - best <= FORM_CONSISTENT_M2LL]
+
+    def factor(self, trial_index: int) -> float:
+        return float(self.form.factor(np.array([float(trial_index)]), self.rate)[0])
+
+    def mechanism(self) -> Drift:
+        return self.form.mechanism(self.rate)
 
     def to_dict(self) -> dict:
         return {
             "name": "drift",
+            "form": self.form.name,
+            "forms_minus2loglik": self.forms_m2ll,
+            "forms_consistent_with_data": self.forms_consistent,
             "parameters": [
                 {
                     "mechanism": "drift",
-                    "parameter": "rate_per_trial",
+                    "parameter": self.form.parameter,
                     "unit": "1",
                     "value": self.rate,
                     "se": self.se,
@@ -90,11 +176,13 @@ def _design(rows: Sequence[TrialStiffness]) -> tuple[np.ndarray, np.ndarray, np.
     return cid, idx, y
 
 
-def _rss(cid: np.ndarray, idx: np.ndarray, y: np.ndarray, r: float) -> np.ndarray:
-    f = 1.0 + r * (idx - 1.0)
+def _rss(
+    cid: np.ndarray, idx: np.ndarray, y: np.ndarray, r: float, form: DriftForm = LINEAR
+) -> np.ndarray:
+    f = form.factor(idx, r)
     if np.any(f <= 0):
         return np.full(y.shape[1], np.inf)
-    z = y - np.log(f)[:, None]
+    z = y - np.log(f)[:, None] * form.mask[None, :]
     out = np.zeros(y.shape[1])
     for c in np.unique(cid):
         m = cid == c
@@ -102,20 +190,46 @@ def _rss(cid: np.ndarray, idx: np.ndarray, y: np.ndarray, r: float) -> np.ndarra
     return out
 
 
-def _m2ll(cid: np.ndarray, idx: np.ndarray, y: np.ndarray, r: float) -> float:
+def _m2ll(
+    cid: np.ndarray, idx: np.ndarray, y: np.ndarray, r: float, form: DriftForm = LINEAR
+) -> float:
     n = len(y)
-    rss = np.maximum(_rss(cid, idx, y, r), 1e-300)
+    rss = np.maximum(_rss(cid, idx, y, r, form), 1e-300)
     return float(np.sum(n * np.log(rss / n)))
 
 
-def _fit_rate(cid: np.ndarray, idx: np.ndarray, y: np.ndarray) -> float:
-    # The factor must stay positive over the session.
-    hi = min(R_BOUND, 0.99 / max(idx.max() - 1.0, 1.0)) if idx.max() > 1 else R_BOUND
+def _fit_rate(cid: np.ndarray, idx: np.ndarray, y: np.ndarray, form: DriftForm = LINEAR) -> float:
     res = minimize_scalar(
-        lambda r: _m2ll(cid, idx, y, r), bounds=(-hi, R_BOUND), method="bounded",
+        lambda r: _m2ll(cid, idx, y, r, form), bounds=form.bounds(idx), method="bounded",
         options={"xatol": 1e-6},
     )  # fmt: skip
     return float(res.x)
+
+
+def _fit_forms(
+    cid: np.ndarray, idx: np.ndarray, y: np.ndarray
+) -> list[tuple[float, DriftForm, float]]:
+    """(−2 log L, form, parameter) of every form, best first."""
+    fits = []
+    for f in drift_forms(cid, idx):
+        v = _fit_rate(cid, idx, y, f)
+        fits.append((_m2ll(cid, idx, y, v, f), f, v))
+    return sorted(fits, key=lambda t: t[0])
+
+
+def drift_forms(cid: np.ndarray, idx: np.ndarray) -> list[DriftForm]:
+    """Linear, and a step at every trial index that some cell has trials on both sides of;
+    each of k_i and k_c together, and of k_i alone."""
+    steps = [
+        c
+        for c in sorted({int(i) for i in idx})
+        if any(idx[cid == k].min() < c <= idx[cid == k].max() for k in np.unique(cid))
+    ]
+    return [
+        DriftForm(at_trial=c, stiffnesses=scope)
+        for scope in (PARAMS, ("k_i",))
+        for c in [None, *steps]
+    ]
 
 
 def analyse_drift(rows: Sequence[TrialStiffness], r0: float = 0.0) -> DriftResult | None:
@@ -134,20 +248,21 @@ def analyse_drift(rows: Sequence[TrialStiffness], r0: float = 0.0) -> DriftResul
     cid, idx, y = _design(keep)
     n = len(keep)
     m0 = _m2ll(cid, idx, y, r0)
-    r_hat = _fit_rate(cid, idx, y)
-    m1 = _m2ll(cid, idx, y, r_hat)
+    fits = _fit_forms(cid, idx, y)
+    m1, form, r_hat = fits[0]
+    forms_m2ll = {f.name: m for m, f, _ in fits}
     d_m2ll = m0 - m1
-    d_bic = -d_m2ll + math.log(n * len(PARAMS))
+    # The family's prior is shared among its forms (1/K each): 2 ln K on the −2 log L scale.
+    d_bic = -d_m2ll + form.n_params * math.log(n * len(PARAMS)) + 2 * math.log(len(fits))
 
     def excess(r: float) -> float:
-        return _m2ll(cid, idx, y, r) - m1 - 3.84
+        return _m2ll(cid, idx, y, r, form) - m1 - 3.84
 
     lo = hi = float("nan")
-    span = 0.99 / max(idx.max() - 1.0, 1.0)
+    a, b = form.bounds(idx)
     try:
-        a = -min(R_BOUND, span)
         lo = brentq(excess, a, r_hat) if excess(a) > 0 else a
-        hi = brentq(excess, r_hat, R_BOUND) if excess(R_BOUND) > 0 else R_BOUND
+        hi = brentq(excess, r_hat, b) if excess(b) > 0 else b
     except ValueError:
         pass
     se = (hi - lo) / 3.92 if np.isfinite(lo) and np.isfinite(hi) else float("nan")
@@ -161,12 +276,16 @@ def analyse_drift(rows: Sequence[TrialStiffness], r0: float = 0.0) -> DriftResul
         same = others & (cid == cid[i])
         if not same.any():
             continue
-        r_i = _fit_rate(cid[others], idx[others], y[others])
+        # The form is chosen again without the trial: a change point chosen on all trials
+        # would carry the left-out trial's own scatter into its prediction.
+        _, form_i, r_i = _fit_forms(cid[others], idx[others], y[others])[0]
         f0 = np.log(1.0 + r0 * (idx[same] - 1.0))
         pred0 = (y[same] - f0[:, None]).mean(axis=0) + np.log(1.0 + r0 * (idx[i] - 1.0))
         press0 += (y[i] - pred0) ** 2
-        f_same = np.log(1.0 + r_i * (idx[same] - 1.0))
-        pred = (y[same] - f_same[:, None]).mean(axis=0) + np.log(1.0 + r_i * (idx[i] - 1.0))
+        mask = form_i.mask
+        f_same = np.log(form_i.factor(idx[same], r_i))[:, None] * mask
+        f_i = np.log(form_i.factor(idx[i : i + 1], r_i))[0] * mask
+        pred = (y[same] - f_same).mean(axis=0) + f_i
         press1 += (y[i] - pred) ** 2
         counted += 1
     gain = float(np.sum(counted * np.log(np.maximum(press0, 1e-300) / np.maximum(press1, 1e-300))))
@@ -202,4 +321,6 @@ def analyse_drift(rows: Sequence[TrialStiffness], r0: float = 0.0) -> DriftResul
         passed=passed,
         reason=reason,
         rows=table,
+        form=form,
+        forms_m2ll=forms_m2ll,
     )

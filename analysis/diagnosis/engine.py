@@ -394,7 +394,9 @@ def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> 
     the best by −2 log L judged (ΔBIC, held-out folds) as the family's candidate. A family the
     baseline already has (a model file's) is re-fitted in the form it has."""
     family = candidate(name)
-    forms = (family.form,) if family.is_on(current.spec.base) else family.forms
+    forms = (
+        (family.form_of(current.spec.base),) if family.is_on(current.spec.base) else family.forms
+    )
     if len(forms) == 1:
         fit, form, form_m2ll = _fit_form(setup, current, family.with_form(forms[0])), forms[0], {}
     else:

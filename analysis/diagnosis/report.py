@@ -469,7 +469,12 @@ def write_html(path: Path, result, prep, setup, sel, drift) -> None:
         "frf": _uri(fig_frf(comp["frf"])),
         "unexcited": _uri(fig_unexcited(comp["unexcited"])),
         "residuals": _uri(
-            fig_residual_views(comp, drift.rate if drift is not None and drift.passed else None)
+            fig_residual_views(
+                comp,
+                drift.rate
+                if drift is not None and drift.passed and drift.form.at_trial is None
+                else None,
+            )
         ),
     }
     limits = "".join(f"<li>{_e(x)}</li>" for x in result.limits)

@@ -39,7 +39,7 @@ from steerlab.analysis.diagnosis.fit import (
 from steerlab.analysis.diagnosis.simulate import remnant_spectrum_fit, simulated_spectra
 from steerlab.analysis.diagnosis.wheel import choose_wheel
 from steerlab.analysis.strict_json import json_clean
-from steerlab.hardware.sim.mechanisms import Drift, Mechanisms
+from steerlab.hardware.sim.mechanisms import Mechanisms
 from steerlab.hardware.sim.model_file import (
     ARM_KEYS,
     baseline_from_model,
@@ -702,11 +702,12 @@ def _drift_gain(setup: Setup, sel: Selection, drift: DriftResult) -> dict:
             o_index = o.trial_index
             assert o_index is not None  # (filtered above)
             arm = final.arms[o.label]
-            f = (1 + drift.rate * (t.trial_index - 1)) / (1 + drift.rate * (o_index - 1))
+            f = drift.factor(t.trial_index) / drift.factor(o_index)
+            f_c = f if "k_c" in drift.form.stiffnesses else 1.0
             with C.few_remnants([t]):
                 th_b, td_b = C.simulated_segment(t, arm, mech)
                 th_a, td_a = C.simulated_segment(
-                    t, replace(arm, k_i=arm.k_i * f, k_c=arm.k_c * f), mech
+                    t, replace(arm, k_i=arm.k_i * f, k_c=arm.k_c * f_c), mech
                 )
             pairs_b.append((t, th_b, td_b))
             pairs_a.append((t, th_a, td_a))
@@ -755,7 +756,7 @@ def _model_text(
     for p in final.parameters():
         fitted.setdefault(p["mechanism"], []).append(p)
     if drift is not None and drift.passed:
-        mech = replace(mech, drift=Drift(rate_per_trial=drift.rate))
+        mech = replace(mech, drift=drift.mechanism())
         fitted["drift"] = drift.to_dict()["parameters"]
     baseline: dict[str, dict[str, Any]] = {}
     rem = result.data["remnant"]

@@ -154,10 +154,16 @@ def mechanisms_from_model(data: dict, where: str = "model") -> Mechanisms:
         cls = type(getattr(Mechanisms(), name))
         allowed = {f.name for f in fields(cls)}
         params = {k: v for k, v in vals.items() if k in allowed}
+        # Settings by name (a family's form: hardware.sim.mechanisms): those whose default is.
+        named = {k for k in allowed if isinstance(getattr(cls(), k), str)}
         for k, v in params.items():
+            if k in named:
+                if not isinstance(v, str):
+                    raise ModelFileError(f"{where}: mechanisms.{name}.{k} must be a string")
+                continue
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
                 raise ModelFileError(f"{where}: mechanisms.{name}.{k} must be a finite number")
-        out[name] = {k: float(v) for k, v in params.items()}
+        out[name] = {k: v if k in named else float(v) for k, v in params.items()}
     try:
         return Mechanisms.from_dict(out)
     except (TypeError, ValueError) as e:

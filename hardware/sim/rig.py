@@ -56,7 +56,8 @@ class SimulatedSubject:
         drift = cfg.mechanisms.drift
         if drift.active:
             f = drift.factor(setup.spec.trial_index)
-            b = replace(b, arm=b.arm.scaled(k_i=f, k_c=f))
+            k_c = f if "k_c" in drift.stiffnesses else 1.0
+            b = replace(b, arm=b.arm.scaled(k_i=f, k_c=k_c))
         return b
 
     def behaviour(self, setup: TrialSetup, cfg: WorldConfig) -> ConditionBehaviour:

@@ -45,11 +45,20 @@ P_K3, P_COUL, P_COUL_EPS, P_ACT_ALPHA = 6, 7, 8, 9
 P_RKP, P_RKV, P_RW, P_RZ, P_DT, P_HAS_DPAR = 10, 11, 12, 13, 14, 15
 P_DPAR_HALF = 16  # dt/2 for scheduled trials (see World._scheduled_deltas), else 0
 P_GRAV = 17  # wheel imbalance m·g·r, N·m (torque −m·g·r·sin θ on the wheel)
-N_PARAMS = 18
+# Forms of the mechanism families (hardware.sim.mechanisms); all 0 in their default forms.
+P_KI = 18  # the trial's intrinsic stiffness k_i (the exponential and piecewise stiffening)
+P_STIFF_FORM, P_RISE, P_THETA_S = 19, 20, 21  # 1 exponential (θ_0), 2 piecewise (θ_s)
+P_STRIB, P_STRIB_V, P_VISC = 22, 23, 24  # F_s − F_c, v_s; viscous b_v
+P_LAG_FORM = 25  # 0 first order (P_ACT_ALPHA), 1 second order (P_LAG2..+6), 2 delay
+P_LAG2 = 26  # Φ00, Φ01, Φ10, Φ11, Γ0, Γ1 of the second-order lag
+P_LAG_N, P_LAG_FRAC = 32, 33  # the delay form: whole samples, fraction
+N_PARAMS = 34
 # Indices into the kernel's state vector (beyond the 4 mechanical states).
 S_TM, S_RA, S_RAD, S_RPOS, S_SPOS, S_CMD = 4, 5, 6, 7, 8, 9
 S_NONFINITE = 10  # cycles whose command had a non-finite input (zero torque applied instead)
-N_STATE = 11
+S_TMD = 11  # the second-order lag's rate of torque
+S_CPOS = 12  # write position in the ring of past commands (the lag's delay form)
+N_STATE = 13  # the ring of past commands, when there is one, follows at st[N_STATE:]
 
 
 @dataclass(frozen=True)
@@ -154,6 +163,38 @@ def _measure(x, st, p, ring_s, vel_noise_k, td_noise_k, dkc=0.0, dbc=0.0):
 
 
 @njit(cache=True)
+def _stiffening(form, rise, theta_s, th):
+    """The stiffening's torque beyond k_i θ, per unit k_i (hardware.sim.mechanisms)."""
+    if form == 1.0:  # θ_0 sinh(θ/θ_0) − θ; its series where the difference cancels
+        x = th / theta_s
+        if abs(x) < 1e-2:
+            x2 = x * x
+            return theta_s * x * x2 * (1.0 / 6.0 + x2 / 120.0)
+        return theta_s * np.sinh(x) - th
+    excess = abs(th) - theta_s
+    if excess <= 0.0:
+        return 0.0
+    return rise * excess if th > 0.0 else -rise * excess
+
+
+@njit(cache=True)
+def _delayed_command(st, p, cmd):
+    """The command of ``P_LAG_N`` (+ ``P_LAG_FRAC``) samples ago, from the ring at
+    st[N_STATE:], after storing this cycle's ``cmd`` there."""
+    ring = st[N_STATE:]
+    nr = ring.shape[0]
+    pos = int(st[S_CPOS])
+    ring[pos] = cmd
+    st[S_CPOS] = (pos + 1) % nr
+    n = int(p[P_LAG_N])
+    a = ring[(pos - n) % nr]
+    f = p[P_LAG_FRAC]
+    if f == 0.0:
+        return a
+    return (1.0 - f) * a + f * ring[(pos - n - 1) % nr]
+
+
+@njit(cache=True)
 def _advance(
     x,
     st,
@@ -197,7 +238,15 @@ def _advance(
                 cmd = 0.0
                 st[S_NONFINITE] += 1
         st[S_CMD] = cmd
-        st[S_TM] += p[P_ACT_ALPHA] * (cmd - st[S_TM])
+        lag_form = p[P_LAG_FORM]
+        if lag_form == 0.0:
+            st[S_TM] += p[P_ACT_ALPHA] * (cmd - st[S_TM])
+        elif lag_form == 1.0:
+            y, yd = st[S_TM], st[S_TMD]
+            st[S_TM] = p[P_LAG2] * y + p[P_LAG2 + 1] * yd + p[P_LAG2 + 4] * cmd
+            st[S_TMD] = p[P_LAG2 + 2] * y + p[P_LAG2 + 3] * yd + p[P_LAG2 + 5] * cmd
+        else:
+            st[S_TM] = _delayed_command(st, p, cmd)
         th, om, thh, omh = x[0], x[1], x[2], x[3]
         contact = p[P_KC] * (th - thh) + p[P_BC] * (om - omh)
         # Torques of added mechanisms, held over the sample.
@@ -205,6 +254,9 @@ def _advance(
         w = 0.0
         if p[P_K3] != 0.0:
             h -= p[P_K3] * thh * thh * thh
+        if p[P_STIFF_FORM] != 0.0:
+            ki = p[P_KI] + dpar[k, 1] if p[P_HAS_DPAR] != 0.0 else p[P_KI]
+            h -= ki * _stiffening(p[P_STIFF_FORM], p[P_RISE], p[P_THETA_S], thh)
         if p[P_HAS_DPAR] != 0.0:
             # The delta torques are held over the sample, i.e. half a sample late: a spring Δk
             # then acts as Δk − s·Δk·dt/2, a negative damping. Scheduled trials add Δk·dt/2 to
@@ -216,7 +268,13 @@ def _advance(
             w -= dcon
             contact += dcon_true
         if p[P_COUL] != 0.0:
-            w -= p[P_COUL] * np.tanh(om / p[P_COUL_EPS])
+            if p[P_STRIB] != 0.0:
+                v = om / p[P_STRIB_V]
+                w -= (p[P_COUL] + p[P_STRIB] * np.exp(-v * v)) * np.tanh(om / p[P_COUL_EPS])
+            else:
+                w -= p[P_COUL] * np.tanh(om / p[P_COUL_EPS])
+        if p[P_VISC] != 0.0:
+            w -= p[P_VISC] * om
         if p[P_GRAV] != 0.0:
             w -= p[P_GRAV] * np.sin(th)
         if p[P_RKP] != 0.0 or p[P_RKV] != 0.0:
@@ -392,7 +450,7 @@ class World:
         self.ring_r = np.zeros(m.reflex_delay_samples(cfg.fs_hz))
         self.ring_s = np.zeros(m.sensor_delay_samples(cfg.fs_hz))
         self.x = np.zeros(4)
-        self.st = np.zeros(N_STATE)
+        self.st = np.zeros(N_STATE + m.command_ring_samples(cfg.fs_hz))
         self.noise: NoiseSource = NoiseBlocks(cfg, behaviour, left_share, seed, schedule)
         self._blk: dict[str, np.ndarray] | None = None
         self._dpar = np.zeros((0, 4))
@@ -430,6 +488,7 @@ class World:
         base = replace(self.behaviour.arm, **dict(zip(ARM_COLUMNS, arm[-1].tolist(), strict=True)))
         self.Ad, self.Bd = discretise(self.cfg.wheel_inertia_kgm2, base, self.p[P_DT])
         self.p[P_KC], self.p[P_BC] = base.k_c, base.b_c
+        self.p[P_KI] = base.k_i
         self.p[P_DPAR_HALF] = 0.5 * self.p[P_DT]
         d = arm - arm[-1]
         return d if dp is None else d + dp

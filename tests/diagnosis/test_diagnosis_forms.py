@@ -1,0 +1,95 @@
+"""The families' forms (issue 18 item 2): each form sets its law in the simulator's slot, and
+drift's forms are told apart on per-trial stiffnesses (no simulation: fast)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from steerlab.analysis.diagnosis.candidates import CANDIDATES, candidate
+from steerlab.analysis.diagnosis.drift import TrialStiffness, analyse_drift
+from steerlab.hardware.sim.mechanisms import Mechanisms
+
+
+@pytest.mark.parametrize(
+    "family", [c for c in CANDIDATES if len(c.forms) > 1], ids=lambda c: c.name
+)
+def test_every_form_switches_its_law_on_and_is_recognised(family):
+    names = [f.name for f in family.forms]
+    assert len(set(names)) == len(names)
+    for form in family.forms:
+        c = family.with_form(form)
+        x = [p.to_coordinate(p.step * 5, 1000.0) if p.transform == "lag" else p.step * 5
+             for p in c.params]  # fmt: skip
+        mech = c.apply(Mechanisms(), x, 1000.0)
+        assert c.is_on(mech), form.name
+        # A model holding this form is re-fitted in it (engine.evaluate_candidate).
+        assert family.form_of(mech) == form, form.name
+        slot = getattr(mech, family.name)
+        assert all(getattr(slot, k) == v for k, v in form.fixed)
+
+
+def test_forms_fit_their_own_parameters():
+    lag = candidate("actuator_lag")
+    delay = next(f for f in lag.forms if f.name == "pure delay")
+    assert [p.field for p in lag.with_form(delay).params] == ["delay_s"]
+    fric = candidate("coulomb_friction")
+    visc = next(f for f in fric.forms if "viscous" in f.name)
+    assert [p.field for p in fric.with_form(visc).params] == ["torque_nm", "viscous_nms_per_rad"]
+
+
+def _rows(factor, seed: int, subjects: int = 2, sd: float = 0.01) -> list[TrialStiffness]:
+    """Two repetitions per condition back to back, conditions in a random order per subject;
+    k_i and k_c scaled by ``factor(trial_index)`` with log-normal scatter ``sd``."""
+    rng = np.random.default_rng(seed)
+    k0 = {"RT": (30.0, 120.0), "BT12": (70.0, 190.0), "PT": (300.0, 400.0)}
+    rows = []
+    for s in range(subjects):
+        ti = 0
+        for c in rng.permutation(list(k0)):
+            for rep in (1, 2):
+                ti += 1
+                f = factor(ti)
+                ki, kc = (k * f * np.exp(sd * rng.standard_normal()) for k in k0[c])
+                rows.append(TrialStiffness(f"S{s}_{ti}", (f"S{s}", c), ti, rep, ki, kc))
+    return rows
+
+
+def test_linear_drift_is_named_linear_and_recovered():
+    res = analyse_drift(_rows(lambda i: 1 + 0.04 * (i - 1), seed=1))
+    assert res is not None and res.passed, res
+    assert res.form.name == "linear", res.forms_m2ll
+    lo, hi = res.ci95
+    assert lo <= 0.04 <= hi
+
+
+def test_stepwise_drift_is_named_with_its_trial_and_recovered():
+    res = analyse_drift(_rows(lambda i: 1.3 if i >= 4 else 1.0, seed=2))
+    assert res is not None and res.passed, res
+    assert res.form.name == "stepwise from trial 4", res.forms_m2ll
+    assert res.to_dict()["parameters"][0]["parameter"] == "step"
+    lo, hi = res.ci95
+    assert lo <= 0.3 <= hi
+    assert res.mechanism().factor(4) == pytest.approx(1 + res.rate)
+
+
+def test_no_drift_rarely_passes_despite_the_choice_of_change_point():
+    """The change point is chosen on the data; the held-out check keeps false alarms rare."""
+    passed = [analyse_drift(_rows(lambda i: 1.0, seed=s)).passed for s in range(40)]
+    assert sum(passed) <= 4, sum(passed)  # ≤ 10 %; 5 of 100 over seeds 0–99
+
+
+def test_drift_of_k_i_alone_is_named_so():
+    """Another lab's drift may move the intrinsic stiffness alone (the contact staying)."""
+
+    def k_i_alone(factor, seed):
+        return [
+            TrialStiffness(r.label, r.cell, r.trial_index, r.repetition, r.k_i,
+                           r.k_c / factor(r.trial_index))
+            for r in _rows(factor, seed)
+        ]  # fmt: skip
+
+    res = analyse_drift(k_i_alone(lambda i: 1.3 if i >= 4 else 1.0, seed=3))
+    assert res is not None and res.passed, res
+    assert res.form.name == "stepwise from trial 4 (k_i alone)", res.forms_m2ll
+    assert res.mechanism().stiffnesses == "k_i"
