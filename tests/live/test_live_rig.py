@@ -43,9 +43,39 @@ def _session(devices, protocol, tmp_path, loop: DeviceLoop | None = None, inject
     return state, SessionFile(tmp_path / "S02.h5").records(), seen
 
 
-def test_a_session_through_can_and_serial_frames(devices, short_protocol, tmp_path):
-    state, recs, seen = _session(devices, short_protocol, tmp_path)
-    assert state is State.DONE
+def _host_starved(recs) -> bool:
+    """Whether a trial was aborted because the drive's watch on its host fired (EMCY 0x8130).
+
+    Host and simulated drive are threads of this test process, which is neither real-time nor
+    alone on the CPU; its heartbeat can come later than the 100 ms a rig may allow (the
+    longest, tests/live/conftest.py), and the drive then rightly drops the torque. That is the
+    safety rule working (tests/hardware/test_drive_guard.py), not what this test is about."""
+    return any(r.status == "aborted" and "0x8130" in (r.abort_reason or "") for r in recs)
+
+
+def test_a_session_through_can_and_serial_frames(devices, rig_config, short_protocol, tmp_path):
+    from steerlab.hardware.live import RigDevices
+
+    fresh = []  # rigs of the attempts after the first (the fixture closes its own)
+    try:
+        for attempt in range(3):
+            (tmp_path / f"a{attempt}").mkdir()
+            state, recs, seen = _session(devices, short_protocol, tmp_path / f"a{attempt}")
+            if state is State.DONE or not _host_starved(recs):
+                break
+            # Starved past the drive's watch on a loaded machine: again, on a fresh rig (one
+            # drive node on the bus at a time).
+            devices.close()
+            devices = RigDevices(rig_config, subject_number=2)
+            fresh.append(devices)
+        _check_the_whole_session(devices, state, recs)
+    finally:
+        for d in fresh:
+            d.close()
+
+
+def _check_the_whole_session(devices, state, recs) -> None:
+    assert state is State.DONE, [(r.status, r.abort_reason) for r in recs]
     assert [r.status for r in recs] == ["complete", "complete"]
     r = recs[0]
     assert r.n_samples == 6500
