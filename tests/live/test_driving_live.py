@@ -10,7 +10,7 @@ from steerlab.protocols.datafile import SessionFile, SessionWriter
 from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.protocol import parse_protocol
 from steerlab.protocols.session import build_plan
-from tests.live.conftest import SHORT_PROTOCOL
+from tests.live.conftest import SHORT_PROTOCOL, on_fresh_rigs
 
 DRIVE = (
     SHORT_PROTOCOL.split("[[conditions]]")[0]
@@ -23,13 +23,26 @@ speed_mps = 15.0
 )
 
 
-def test_a_drive_through_can_and_serial_frames(devices, tmp_path):
-    protocol = parse_protocol(DRIVE, "drive.toml")
-    plan = build_plan(protocol, 2)
+def _drive(devices, where):
+    plan = build_plan(parse_protocol(DRIVE, "drive.toml"), 2)
     eng = SessionEngine(plan, devices.device_loop())
-    eng.subscribe(SessionWriter(tmp_path / "S02.h5"))
-    assert eng.run() is State.DONE
-    (rec,) = SessionFile(tmp_path / "S02.h5").records()
+    eng.subscribe(SessionWriter(where / "S02.h5"))
+    state = eng.run()
+    return state, SessionFile(where / "S02.h5").records()
+
+
+def test_a_drive_through_can_and_serial_frames(devices, rig_config, tmp_path):
+    (state, recs), rig = on_fresh_rigs(devices, rig_config, tmp_path, _drive)
+    try:
+        _check_the_drive(rig, state, recs)
+    finally:
+        if rig is not devices:
+            rig.close()
+
+
+def _check_the_drive(devices, state, recs) -> None:
+    assert state is State.DONE, [(r.status, r.abort_reason) for r in recs]
+    (rec,) = recs
     assert rec.status == "complete" and rec.driving
     n = rec.n_samples
     for c in DRIVING_CHANNELS:

@@ -16,6 +16,7 @@ from steerlab.protocols.datafile import SessionFile, SessionWriter
 from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.session import build_plan
 from tests.hardware.can_wire import wait_for
+from tests.live.conftest import on_fresh_rigs
 
 
 def _session(devices, protocol, tmp_path, loop: DeviceLoop | None = None, inject=None, at_s=1.5):
@@ -43,35 +44,15 @@ def _session(devices, protocol, tmp_path, loop: DeviceLoop | None = None, inject
     return state, SessionFile(tmp_path / "S02.h5").records(), seen
 
 
-def _host_starved(recs) -> bool:
-    """Whether a trial was aborted because the drive's watch on its host fired (EMCY 0x8130).
-
-    Host and simulated drive are threads of this test process, which is neither real-time nor
-    alone on the CPU; its heartbeat can come later than the 100 ms a rig may allow (the
-    longest, tests/live/conftest.py), and the drive then rightly drops the torque. That is the
-    safety rule working (tests/hardware/test_drive_guard.py), not what this test is about."""
-    return any(r.status == "aborted" and "0x8130" in (r.abort_reason or "") for r in recs)
-
-
 def test_a_session_through_can_and_serial_frames(devices, rig_config, short_protocol, tmp_path):
-    from steerlab.hardware.live import RigDevices
-
-    fresh = []  # rigs of the attempts after the first (the fixture closes its own)
+    (state, recs, _seen), rig = on_fresh_rigs(
+        devices, rig_config, tmp_path, lambda d, where: _session(d, short_protocol, where)
+    )
     try:
-        for attempt in range(3):
-            (tmp_path / f"a{attempt}").mkdir()
-            state, recs, seen = _session(devices, short_protocol, tmp_path / f"a{attempt}")
-            if state is State.DONE or not _host_starved(recs):
-                break
-            # Starved past the drive's watch on a loaded machine: again, on a fresh rig (one
-            # drive node on the bus at a time).
-            devices.close()
-            devices = RigDevices(rig_config, subject_number=2)
-            fresh.append(devices)
-        _check_the_whole_session(devices, state, recs)
+        _check_the_whole_session(rig, state, recs)
     finally:
-        for d in fresh:
-            d.close()
+        if rig is not devices:
+            rig.close()
 
 
 def _check_the_whole_session(devices, state, recs) -> None:
@@ -282,3 +263,31 @@ def test_redo_while_waiting_between_trials(short_protocol, tmp_path):
     t.join(30)
     assert eng.state is State.DONE
     assert sorted(eng.attempts_of(1)) == [(1, "superseded"), (2, "complete")]
+
+
+def test_only_a_starved_session_is_run_again_on_a_fresh_rig(devices, rig_config, tmp_path):
+    from types import SimpleNamespace
+
+    def scripted(reasons):
+        calls = []
+
+        def session(d, where):
+            reason = reasons[len(calls)]
+            calls.append(d)
+            rec = SimpleNamespace(status="aborted" if reason else "complete", abort_reason=reason)
+            return (State.IDLE if reason else State.DONE), [rec]
+
+        return calls, session
+
+    calls, session = scripted(["control loop stalled: cycle 538.8 ms late", None])
+    (tmp_path / "a").mkdir()
+    (state, _), rig = on_fresh_rigs(devices, rig_config, tmp_path / "a", session)
+    try:
+        assert state is State.DONE and calls[0] is devices and calls[1] is rig is not devices
+    finally:
+        rig.close()
+    # Any other abort is the test's answer, at once.
+    calls, session = scripted(["drive fault: drive node 1 EMCY 0x2310", None])
+    (tmp_path / "b").mkdir()
+    (state, _), _rig = on_fresh_rigs(devices, rig_config, tmp_path / "b", session)
+    assert state is State.IDLE and len(calls) == 1
