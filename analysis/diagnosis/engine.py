@@ -153,12 +153,21 @@ def start_arms(
     replaced by plausible ones outright. Every start keeps the current model's inertia of the
     subject (the fit frees one per subject, started from one value).
     """
-    plausible = {t.label: replace(plausible_arm(t), I_i=current[t.label].I_i) for t in trials}
-    fixed = {
-        t.label: plausible[t.label] if _degenerate(current[t.label]) else current[t.label]
+    plausible = {t.label: _plausible_keeping_inertia(t, current) for t in trials}
+    return best_start_arms(trials, spec, noise, [_unstuck(trials, current), plausible], x=x)
+
+
+def _plausible_keeping_inertia(t: TrialData, arms: dict[str, ArmParams]) -> ArmParams:
+    return replace(plausible_arm(t), I_i=arms[t.label].I_i)
+
+
+def _unstuck(trials: Sequence[TrialData], arms: dict[str, ArmParams]) -> dict[str, ArmParams]:
+    """``arms`` with each arm that ran into a bound replaced by a plausible one (same inertia)."""
+    stuck = {t.label for t in trials if _degenerate(arms[t.label])}
+    return {
+        t.label: _plausible_keeping_inertia(t, arms) if t.label in stuck else arms[t.label]
         for t in trials
     }
-    return best_start_arms(trials, spec, noise, [fixed, plausible], x=x)
 
 
 def _new_off(spec: ModelSpec, x: np.ndarray) -> np.ndarray:
@@ -213,13 +222,9 @@ def _out_of_corners(
     of −2 log L above the optimum the next step's candidates all found from plausible arms,
     and each of them then looked 13 000 units better than the model it extends.
     """
-    stuck = [t for t in trials if _degenerate(fit.arms[t.label])]
-    if not stuck:
+    if not any(_degenerate(fit.arms[t.label]) for t in trials):
         return fit
-    arms = dict(fit.arms)
-    for t in stuck:
-        arms[t.label] = replace(plausible_arm(t), I_i=fit.arms[t.label].I_i)
-    alt = fit_model(trials, spec, noise, arms, x0=fit.x, **opts)
+    alt = fit_model(trials, spec, noise, _unstuck(trials, fit.arms), x0=fit.x, **opts)
     return alt if alt.m2ll < fit.m2ll else fit
 
 

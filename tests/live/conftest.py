@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import replace
 
 import pytest
@@ -82,8 +83,8 @@ def devices(rig_config):
 # Aborts that say the test process was starved of the CPU, not that the path under test failed:
 # the loop stalled past its (lenient) limit, or the drive's watch on its host (at most 100 ms,
 # the rig file's rule) fired. Host, loop and simulated drive are threads of one test process
-# that is neither real-time nor alone on the CPU (three test workers on two cores, and whatever
-# else runs). The safety rule working is tested where it is the subject (test_drive_guard.py,
+# that is neither real-time nor alone on the CPU (the other test workers, and whatever else
+# runs). The safety rule working is tested where it is the subject (test_drive_guard.py,
 # the fault tests below, benchmarks/faults.py).
 STARVED = ("control loop stalled", "0x8130")
 
@@ -94,18 +95,25 @@ def starved(recs) -> bool:
     )
 
 
+@contextmanager
 def on_fresh_rigs(devices, rig_config, tmp_path, session, attempts: int = 3):
     """``session(devices, directory) -> (state, recs, ...)``, run again on a fresh rig (one drive
     node on the bus at a time) while its trials were aborted only because the process was
-    starved. Returns the last result and its rig; ``close()`` the rig unless it is ``devices``."""
+    starved. Yields the last result and its rig; a fresh rig is closed on leaving (``devices``
+    stays the fixture's to close)."""
     from steerlab.hardware.live import RigDevices
 
-    for attempt in range(attempts):
-        directory = tmp_path / f"attempt{attempt}"
-        directory.mkdir()
-        result = session(devices, directory)
-        if not starved(result[1]) or attempt == attempts - 1:
-            return result, devices
-        devices.close()
-        devices = RigDevices(rig_config, subject_number=2)
-    raise AssertionError("unreachable")
+    rig = devices
+    try:
+        for attempt in range(attempts):
+            directory = tmp_path / f"attempt{attempt}"
+            directory.mkdir()
+            result = session(rig, directory)
+            if not starved(result[1]) or attempt == attempts - 1:
+                break
+            rig.close()
+            rig = RigDevices(rig_config, subject_number=2)
+        yield result, rig
+    finally:
+        if rig is not devices:
+            rig.close()

@@ -32,12 +32,8 @@ def _drive(devices, where):
 
 
 def test_a_drive_through_can_and_serial_frames(devices, rig_config, tmp_path):
-    (state, recs), rig = on_fresh_rigs(devices, rig_config, tmp_path, _drive)
-    try:
+    with on_fresh_rigs(devices, rig_config, tmp_path, _drive) as ((state, recs), rig):
         _check_the_drive(rig, state, recs)
-    finally:
-        if rig is not devices:
-            rig.close()
 
 
 def _check_the_drive(devices, state, recs) -> None:

@@ -45,14 +45,11 @@ def _session(devices, protocol, tmp_path, loop: DeviceLoop | None = None, inject
 
 
 def test_a_session_through_can_and_serial_frames(devices, rig_config, short_protocol, tmp_path):
-    (state, recs, _seen), rig = on_fresh_rigs(
-        devices, rig_config, tmp_path, lambda d, where: _session(d, short_protocol, where)
-    )
-    try:
+    def session(d, where):
+        return _session(d, short_protocol, where)
+
+    with on_fresh_rigs(devices, rig_config, tmp_path, session) as ((state, recs, _), rig):
         _check_the_whole_session(rig, state, recs)
-    finally:
-        if rig is not devices:
-            rig.close()
 
 
 def _check_the_whole_session(devices, state, recs) -> None:
@@ -281,13 +278,10 @@ def test_only_a_starved_session_is_run_again_on_a_fresh_rig(devices, rig_config,
 
     calls, session = scripted(["control loop stalled: cycle 538.8 ms late", None])
     (tmp_path / "a").mkdir()
-    (state, _), rig = on_fresh_rigs(devices, rig_config, tmp_path / "a", session)
-    try:
+    with on_fresh_rigs(devices, rig_config, tmp_path / "a", session) as ((state, _), rig):
         assert state is State.DONE and calls[0] is devices and calls[1] is rig is not devices
-    finally:
-        rig.close()
     # Any other abort is the test's answer, at once.
     calls, session = scripted(["drive fault: drive node 1 EMCY 0x2310", None])
     (tmp_path / "b").mkdir()
-    (state, _), _rig = on_fresh_rigs(devices, rig_config, tmp_path / "b", session)
-    assert state is State.IDLE and len(calls) == 1
+    with on_fresh_rigs(devices, rig_config, tmp_path / "b", session) as ((state, _), _rig):
+        assert state is State.IDLE and len(calls) == 1
