@@ -73,6 +73,7 @@ def test_stepwise_drift_is_named_with_its_trial_and_recovered():
     assert res.mechanism().factor(4) == pytest.approx(1 + res.rate)
 
 
+@pytest.mark.slow  # a Monte Carlo: the slow tier (README)
 def test_no_drift_rarely_passes_despite_the_choice_of_change_point():
     """The change point is chosen on the data; the held-out check keeps false alarms rare."""
     passed = [analyse_drift(_rows(lambda i: 1.0, seed=s)).passed for s in range(40)]

@@ -24,7 +24,7 @@ repetitions = 1
 break_between_trials_s = 0.0
 break_between_conditions_s = 0.0
 [perturbation]
-period_s = 5.0
+period_s = 2.5
 n_bands = 10
 first_bin = 3
 f_max_hz = 20.0
@@ -36,6 +36,8 @@ boundary_deg = 12.0
 name = "PT"
 boundary_deg = 0.0
 """
+# Samples of one SHORT_PROTOCOL trial at 1 kHz: run-in 1 s + one 2.5 s period + fade-out 0.5 s.
+SHORT_TRIAL_SAMPLES = 4000
 
 
 @pytest.fixture

@@ -20,6 +20,7 @@ from steerlab.protocols import events as ev
 from steerlab.protocols.datafile import SessionFile, SessionWriter
 from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.session import build_plan
+from tests.live.conftest import SHORT_TRIAL_SAMPLES
 
 
 def _engine(loop, protocol, path, trials=None):
@@ -66,10 +67,10 @@ def test_default_simulated_rig_runs_its_devices_in_a_process_of_their_own(
     finally:
         loop.close()
     (r,) = SessionFile(tmp_path / "S02.h5").records()
-    assert r.status == "complete" and r.n_samples == 6500 == stats["samples"]
+    assert r.status == "complete" and r.n_samples == SHORT_TRIAL_SAMPLES == stats["samples"]
     # Every control cycle reached the drive in the lab process: one SYNC per sample, plus the
     # 300 zeroing cycles, in OPERATION ENABLED.
-    assert after["enabled_syncs"] - before >= 6500 + 300
+    assert after["enabled_syncs"] - before >= SHORT_TRIAL_SAMPLES + 300
     assert after["applied_torque_nm"] == 0.0  # the trial's end left the motor at zero
     # The simulated subject holds the wheel there: the wheel moves under the perturbation and
     # the column torque is the subject's, its sensor offset (0.05 N·m) zeroed while the

@@ -16,7 +16,7 @@ from steerlab.protocols.datafile import SessionFile, SessionWriter
 from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.session import build_plan
 from tests.hardware.can_wire import wait_for
-from tests.live.conftest import on_fresh_rigs
+from tests.live.conftest import SHORT_TRIAL_SAMPLES, on_fresh_rigs
 
 
 def _session(devices, protocol, tmp_path, loop: DeviceLoop | None = None, inject=None, at_s=1.5):
@@ -56,9 +56,9 @@ def _check_the_whole_session(devices, state, recs) -> None:
     assert state is State.DONE, [(r.status, r.abort_reason) for r in recs]
     assert [r.status for r in recs] == ["complete", "complete"]
     r = recs[0]
-    assert r.n_samples == 6500
+    assert r.n_samples == SHORT_TRIAL_SAMPLES
     # Every cycle went over the bus: one SYNC per sample (plus the zeroing cycles).
-    assert devices.node.sync_count >= 2 * 6500
+    assert devices.node.sync_count >= 2 * SHORT_TRIAL_SAMPLES
     st = devices.glove.stats()
     assert 95 < st.rate_hz < 105 and st.crc_errors == 0
     # Grip force arrived through the pty at about 100 Hz: held values change every ~10 samples.

@@ -21,6 +21,7 @@ from steerlab.protocols.datafile import SessionFile, SessionWriter
 from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.session import build_plan
 from tests.helpers import ROOT
+from tests.live.conftest import SHORT_TRIAL_SAMPLES
 
 
 @pytest.fixture
@@ -70,9 +71,9 @@ def test_session_in_the_loop_process_is_real_time(process_loop, short_protocol, 
     recs = SessionFile(tmp_path / "S02.h5").records()
     assert [r.status for r in recs] == ["complete", "complete"]
     stats = json.loads(recs[0].attrs["loop_stats"])
-    assert stats["cycles"] == stats["samples"] == 6500
+    assert stats["cycles"] == stats["samples"] == SHORT_TRIAL_SAMPLES
     # The samples are the cycles, one per period, in order.
-    np.testing.assert_array_equal(recs[0].time_s, np.arange(6500) / 1000.0)
+    np.testing.assert_array_equal(recs[0].time_s, np.arange(SHORT_TRIAL_SAMPLES) / 1000.0)
 
 
 def test_block_size_reaches_the_loop_process(lenient_rig, short_protocol, tmp_path):
@@ -87,7 +88,7 @@ def test_block_size_reaches_the_loop_process(lenient_rig, short_protocol, tmp_pa
         assert eng.run() is State.DONE
     finally:
         loop.close()
-    assert sum(sizes) == 6500
+    assert sum(sizes) == SHORT_TRIAL_SAMPLES
     assert set(sizes[:-1]) == {20}
 
 

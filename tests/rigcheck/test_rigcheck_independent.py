@@ -74,6 +74,7 @@ def test_recording_from_another_rig_gives_its_parameters(tmp_path, trajectory, c
     assert (tmp_path / "out" / "fit.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow  # a Monte Carlo: the slow tier (README)
 def test_sems_agree_with_a_monte_carlo(trajectory):
     """12 recordings differing only in the measurement noise: the spread of the estimates
     matches the SEMs the fit reports (Newey–West and plain Fisher alike, the residual being

@@ -44,10 +44,10 @@ break_between_trials_s = {brk}
 break_between_conditions_s = {brk}
 
 [perturbation]
-period_s = 4.0
+period_s = 2.0
 n_bands = 3
 first_bin = 1
-f_max_hz = 2.0
+f_max_hz = 4.0
 full_power_max_hz = 0.7
 reduced_power_ratio = 0.1
 sd_nm = 2.26
@@ -58,10 +58,10 @@ seed = 2017
 name = "RT"
 boundary_deg = inf
 """
-TRIAL_SAMPLES = 4750  # (0.5 + 4.0 + 0.25) s at 1 kHz
+TRIAL_SAMPLES = 2750  # (0.5 + 2.0 + 0.25) s at 1 kHz
 
 
-def _protocol(tmp_path: Path, fam: int = 1, brk: float = 3.0) -> Path:
+def _protocol(tmp_path: Path, fam: int = 1, brk: float = 1.0) -> Path:
     p = tmp_path / "tiny.toml"
     p.write_text(TINY.format(fam=fam, brk=brk))
     return p
@@ -152,7 +152,7 @@ def _opens_everywhere(out: Path, tmp_path: Path, n_files: int = 1) -> list:
 
 @pytest.mark.parametrize("moment", ["familiarization", "measured", "break"])
 def test_kill_during_a_run_session(tmp_path, moment, lenient_rig):
-    proto = _protocol(tmp_path)
+    proto = _protocol(tmp_path, brk=3.0 if moment == "break" else 1.0)
     out = tmp_path / "sessions"
     path = out / "S01.h5"
     proc = _start("run", "--subject", 1, "--protocol", proto, "--out", out, "--rig", lenient_rig)
