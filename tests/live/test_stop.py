@@ -150,12 +150,13 @@ def _urgent() -> None:
 def test_steerlab_stop_by_subject_with_two_real_sessions(
     tmp_path, short_protocol_file, lenient_rig
 ):
-    # trials of 18.5 s for S02; S01's of 101.5 s, so that S01 is still running when S02 has been
-    # stopped, however slowly the commands in between start on a loaded machine
+    # trials of 16.5 s for S02 (6 periods of 2.5 s); S01's of 101.5 s, so that S02 is still
+    # running when the stop comes and S01 when S02 has been stopped, however slowly the
+    # commands in between start on a loaded machine (the test ends both once it has seen that)
     long = tmp_path / "long.toml"
-    long.write_text(short_protocol_file.read_text().replace("periods = 1", "periods = 3"))
+    long.write_text(short_protocol_file.read_text().replace("periods = 1", "periods = 6"))
     longer = tmp_path / "longer.toml"
-    longer.write_text(short_protocol_file.read_text().replace("periods = 1", "periods = 20"))
+    longer.write_text(short_protocol_file.read_text().replace("periods = 1", "periods = 40"))
     protocols = {1: longer, 2: long}
     short_protocol_file = long
     rig = lenient_rig
