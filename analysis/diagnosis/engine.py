@@ -12,7 +12,8 @@ Set-up (:func:`build_setup`)
 Greedy forward selection (:func:`select`)
     At each step every remaining candidate is added to the current model and fitted:
 
-    - on all trials: Δ(−2 log L) and ΔBIC = Δ(−2 log L) + Δp·ln n (n: complex residual values);
+    - on all trials: Δ(−2 log L) and ΔBIC = Δ(−2 log L) + Δp·ln n + 2 ln K (n: complex residual
+      values; K: the family's forms, its prior shared among them);
     - held out, by repetition: fitted on repetition A (its per-trial arms and the mechanism's
       parameters), then on repetition B the mechanism's parameters stay as A gave them and
       only B's own arm parameters, which every model has, are re-estimated. The held-out gain
@@ -416,7 +417,9 @@ def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> 
         form_m2ll[form.name] = fit.m2ll
     spec = fit.spec
     d_m2ll = current.fit.m2ll - fit.m2ll
-    d_bic = fit.bic - current.fit.bic
+    # The family's prior is shared among its K forms (as drift's): 2 ln K on the −2 log L
+    # scale, the price of choosing the best of K shapes on the same data.
+    d_bic = fit.bic - current.fit.bic + 2.0 * math.log(len(forms))
     gain = None
     folds: list[float] = []
     xs: list[np.ndarray] = []
