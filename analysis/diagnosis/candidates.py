@@ -164,7 +164,7 @@ STIFFENING_FORMS = (
         "piecewise (slope (1 + rise) k_i beyond 0.01 rad)",
         (("form", "piecewise"), ("theta_scale_rad", 0.01)),
         # rise ≥ 0, as the exponential's: the family is stiffening. Free to go negative, the
-        # break's softening (−6 %, z 3.2) passed on null studies of the independent world.
+        # break's softening (−6 %, z 3.2) passed on two null studies of the independent world.
         (ParamSpec("rise", "1", 0.05, 0.0, 50.0),),
     ),
 )

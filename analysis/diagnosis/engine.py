@@ -305,6 +305,7 @@ class CandidateResult:
     form_m2ll: dict[str, float] = field(default_factory=dict)  # −2 log L of every form tried
     forms_consistent: list[str] = field(default_factory=list)  # within FORM_CONSISTENT_M2LL
     held_out_trial_cost: dict[str, float] = field(default_factory=dict, repr=False)
+    n_forms: int = 1  # K, the family's forms tried (its ΔBIC carries 2 ln K)
     # Candidates of the same step that explain the data as well as this one (see confusable).
     equally_good: list[dict] = field(default_factory=list)
 
@@ -434,7 +435,7 @@ def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> 
     return CandidateResult(
         name, step, fit, float(d_m2ll), float(d_bic), gain, folds, fold_x=xs, fold_cost=costs,
         form=form.name, form_m2ll=form_m2ll, forms_consistent=_consistent(form_m2ll),
-        held_out_trial_cost=per_trial,
+        held_out_trial_cost=per_trial, n_forms=len(forms),
     )  # fmt: skip
 
 
@@ -483,6 +484,7 @@ def confusable(
             keys = sorted(best.fit.cost_trial.keys() & r.fit.cost_trial.keys())
             d = np.array([2.0 * (r.fit.cost_trial[k] - best.fit.cost_trial[k]) for k in keys])
             offset = (r.fit.n_params - best.fit.n_params) * math.log(max(best.fit.n_obs, 2))
+            offset += 2.0 * (math.log(r.n_forms) - math.log(best.n_forms))  # as their ΔBIC
         if len(d) < 2:
             continue
         diff = float(d.sum() + offset)

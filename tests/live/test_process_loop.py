@@ -180,7 +180,7 @@ def test_steerlab_run_and_stop(tmp_path, short_protocol_file, lenient_rig):
     pidfile = out / "steerlab-run-S01.pid"
     deadline = time.monotonic() + 60
     # Stop it from "another terminal" once the first trial is under way.
-    assert wait_for_samples(out / "S01.h5", 1500, deadline) and pidfile.exists()
+    assert wait_for_samples(out / "S01.h5", 500, deadline) and pidfile.exists()
     s = _steerlab("stop", "--out", out)
     assert s.wait(30) == 0, s.stderr.read()
     _, err = p.communicate(timeout=60)
@@ -247,7 +247,7 @@ def test_emergency_stop_from_the_keyboard(tmp_path, short_protocol_file, lenient
     )
     os.close(slave)
     try:
-        assert wait_for_samples(out / "S01.h5", 1500, time.monotonic() + 60)
+        assert wait_for_samples(out / "S01.h5", 500, time.monotonic() + 60)
         if how == "enter":
             os.write(master, b"\n")
         else:

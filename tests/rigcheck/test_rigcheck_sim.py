@@ -262,7 +262,7 @@ def test_run_records_the_last_rig_check(tmp_path):
     proto = tmp_path / "short.toml"
     one = SHORT_PROTOCOL.replace('[[conditions]]\nname = "PT"\nboundary_deg = 0.0\n', "")
     assert one != SHORT_PROTOCOL
-    proto.write_text(one)  # one 6.5 s trial
+    proto.write_text(one)  # one 4 s trial
     hands_off_trial(tmp_path / "rc.h5", world(), periods=1)
     identify(tmp_path / "rc.h5", tmp_path / "check")
     bad = tmp_path / "bad.json"

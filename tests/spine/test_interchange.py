@@ -14,7 +14,8 @@ from steerlab.protocols.datafile import SessionFile
 from steerlab.protocols.interchange import InterchangeError, export_study, import_study
 from tests.analysis.synthetic_trials import find_example
 
-# The team's shared example ($STEERLAB_EXAMPLES, or the shared folder beside the repository).
+# The shared interchange example: $STEERLAB_EXAMPLES, the repository's docs/examples, or the
+# team's shared folder beside the repository (tests/analysis/synthetic_trials.find_example).
 _FOUND = find_example()
 EXAMPLE = Path(_FOUND).parent if _FOUND else Path("/nonexistent")
 HEADER = "time_s,perturbation_torque_Nm,driver_torque_Nm,wheel_angle_rad,grip_force_N"
