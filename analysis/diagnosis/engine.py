@@ -305,7 +305,6 @@ class CandidateResult:
     form_m2ll: dict[str, float] = field(default_factory=dict)  # −2 log L of every form tried
     forms_consistent: list[str] = field(default_factory=list)  # within FORM_CONSISTENT_M2LL
     held_out_trial_cost: dict[str, float] = field(default_factory=dict, repr=False)
-    n_forms: int = 1  # K, the family's forms tried (its ΔBIC carries 2 ln K)
     # Candidates of the same step that explain the data as well as this one (see confusable).
     equally_good: list[dict] = field(default_factory=list)
 
@@ -435,7 +434,7 @@ def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> 
     return CandidateResult(
         name, step, fit, float(d_m2ll), float(d_bic), gain, folds, fold_x=xs, fold_cost=costs,
         form=form.name, form_m2ll=form_m2ll, forms_consistent=_consistent(form_m2ll),
-        held_out_trial_cost=per_trial, n_forms=len(forms),
+        held_out_trial_cost=per_trial,
     )  # fmt: skip
 
 
@@ -479,15 +478,15 @@ def confusable(
         if held_out:
             keys = sorted(best.held_out_trial_cost.keys() & r.held_out_trial_cost.keys())
             d = np.array([r.held_out_trial_cost[k] - best.held_out_trial_cost[k] for k in keys])
-            offset = 0.0
+            diff = float(d.sum())
         else:
             keys = sorted(best.fit.cost_trial.keys() & r.fit.cost_trial.keys())
             d = np.array([2.0 * (r.fit.cost_trial[k] - best.fit.cost_trial[k]) for k in keys])
-            offset = (r.fit.n_params - best.fit.n_params) * math.log(max(best.fit.n_obs, 2))
-            offset += 2.0 * (math.log(r.n_forms) - math.log(best.n_forms))  # as their ΔBIC
+            # Both are fitted on every trial against the same current model: their BIC
+            # difference, with the prices of parameters and forms as ΔBIC has them.
+            diff = float(r.delta_bic - best.delta_bic)
         if len(d) < 2:
             continue
-        diff = float(d.sum() + offset)
         se = float(math.sqrt(len(d)) * d.std(ddof=1))
         if diff <= AMBIGUITY_Z * se:
             out.append(

@@ -186,10 +186,7 @@ def test_a_fit_whose_approximate_slope_fails_goes_on_with_the_exact_one(tmp_path
     )
     trials, spec, noise = setup.trials, setup.spec(), setup.noise
     # A start off the optimum: every trial's stiffnesses 30 % high.
-    start = {
-        t.label: replace(a, k_i=1.3 * a.k_i, k_c=1.3 * a.k_c)
-        for t, a in ((t, setup.base.arms[t.label]) for t in trials)
-    }
+    start = {k: replace(a, k_i=1.3 * a.k_i, k_c=1.3 * a.k_c) for k, a in setup.base.arms.items()}
     reference = F.fit_model(trials, spec, noise, start)
     monkeypatch.setattr(
         F,
