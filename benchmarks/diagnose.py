@@ -190,8 +190,10 @@ def _run_otherworld_case(kind: str | None, form: str | None, seed: int) -> dict:
     # The form each named family reports as fitting best (issue 18 item 2), beside the hidden
     # one: the forms' names differ between the worlds, so they are shown, not scored.
     forms = {c: r.candidates[c].get("form") for c in r.causes if c in r.candidates}
+    # Wall seconds per stage (load, baseline, candidates, drift, compare): where the time goes.
+    stages = {k: round(v, 1) for k, v in (r.timing_s or {}).items() if k != "per_subject"}
     return {**row, "cause": r.cause, "causes": r.causes, "forms_reported": forms,
-            "limits": r.limits}  # fmt: skip
+            "limits": r.limits, "stages_s": stages}  # fmt: skip
 
 
 def main(argv: list[str]) -> dict:

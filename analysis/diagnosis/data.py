@@ -37,6 +37,7 @@ from steerlab.analysis.periods import (
     record_period_s,
     select_periods,
 )
+from steerlab.hardware.safety import SafetyLimits
 from steerlab.hardware.sim.physiology import ArmParams
 from steerlab.protocols.datafile import DataFileError
 from steerlab.protocols.protocol import VirtualWheel
@@ -108,6 +109,9 @@ class TrialData:
     # The wheel the simulated world has (inertia, rendered b and k): nominal, or a rig check's
     # (analysis.diagnosis.wheel); its wheel-side mechanisms are in the baseline's mechanisms.
     wheel: VirtualWheel = field(default_factory=VirtualWheel)
+    # The torque and slew limits the simulated loop applies to its command: Steerlab's rig's,
+    # unless the baseline finds the recording's rig had none (engine.choose_rig_limits).
+    safety: SafetyLimits = field(default_factory=SafetyLimits)
     # Remnant realisations (N·m, n_sim samples each) for nonlinear models; set by the fit.
     remnant: list[np.ndarray] = field(default_factory=list)
     # Undo the model's torque-reading delay in the wheel-equation channel (final fit only).

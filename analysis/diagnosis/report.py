@@ -506,7 +506,8 @@ torque Td are compared with the measured ones. The <b>baseline</b> is the paper'
 driver's own torque noise (remnant) cannot be reproduced sample by sample: it is the residual
 the best model still leaves, estimated at the frequencies the perturbation does not excite.
 Each candidate mechanism is added to the model and fitted; it is <b>retained</b> only if it
-improves BIC (ΔBIC &lt; −10) <em>and</em> predicts the other repetition better than the model
+improves BIC (ΔBIC &lt; −10, where a mechanism that comes in K forms pays 2 ln K for the
+choice of its best form) <em>and</em> predicts the other repetition better than the model
 without it (held-out gain &gt; 5). The <b>extended model</b> is the baseline plus what was
 retained; it is written to <code>model.toml</code>. VAF = 100·(1 − Σ(measured − simulated)² /
 Σ measured²); FIT% is the paper's frequency-domain fit of the admittance θ/Td.</p>
@@ -556,7 +557,8 @@ uncertainties. <code>steerlab simulate --model model.toml</code> simulates with 
 
 <h2>4. What it gains</h2>
 {_gain_table(result)}
-<p>Overall ΔBIC (extended − baseline, all data): {_n(result.gain.get("delta_bic"), 5)}.</p>
+<p>Overall ΔBIC (extended − baseline, all data; the 2 ln K for a choice among forms is
+not in it): {_n(result.gain.get("delta_bic"), 5)}.</p>
 
 <h2>Data and notes</h2>
 <ul>{notes}</ul>

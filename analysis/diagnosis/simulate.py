@@ -75,14 +75,15 @@ def behaviour_for(trial: TrialData, arm: ArmParams) -> ConditionBehaviour:
 
 
 def trial_world(trial: TrialData, mechanisms: Mechanisms) -> World:
-    """The noiseless world at the trial's rate, with the trial's wheel (nominal or measured)."""
+    """The noiseless world at the trial's rate, with the trial's wheel (nominal or measured)
+    and the recording rig's command limits (``TrialData.safety``)."""
     cfg = WorldConfig(
         fs_hz=trial.fs_hz,
         wheel_inertia_kgm2=trial.wheel.inertia_kgm2,
         sensors=NOISELESS,
         mechanisms=mechanisms,
     )
-    return World(cfg, wheel=trial.wheel)
+    return World(cfg, wheel=trial.wheel, safety=trial.safety)
 
 
 def simulate_trial(

@@ -14,6 +14,7 @@ The studies are the smallest that show each verdict (see docs/benchmarks.md for 
 
 from __future__ import annotations
 
+import math
 import shutil
 from pathlib import Path
 
@@ -42,6 +43,32 @@ def test_null_study_of_another_world_is_explained_by_the_fitted_baseline(tmp_pat
     # The arm inertia came from the data (the world's is 0.07 kg·m²), not Steerlab's 0.1.
     inertia = {a["I_i"] for a in res.data["arms"].values()}
     assert len(inertia) == 1 and 0.055 < inertia.pop() < 0.085
+    # A candidate that fails on BIC cannot be retained: it is not tried on held-out data.
+    failed = [c for n, c in res.candidates.items() if n != "drift" and c["delta_bic"] >= -10]
+    assert failed
+    for c in failed:
+        assert c["held_out_gain_minus2loglik"] is None and "not tried" in c["reason"], c
+
+
+# Seed 15's multisine peaks at 9.15 N·m. Steerlab's rig clips its command at 8 N·m
+# (hardware.safety.SafetyLimits); the independent world's rig applies it in full.
+UNCLIPPED_SEED = 15
+
+
+def test_a_rig_that_applies_torque_beyond_steerlabs_limit_is_simulated_without_it(tmp_path):
+    res = run_diagnosis(otherworld_study(tmp_path, [], seed=UNCLIPPED_SEED), None)
+    assert res.cause == "none", res.summary()
+    assert res.unexplained["within_noise"], res.unexplained
+    assert any("beyond Steerlab's limits" in n for n in res.notes), res.notes
+
+
+@pytest.mark.slow
+def test_with_steerlabs_limit_imposed_the_same_null_study_is_a_false_alarm(tmp_path, monkeypatch):
+    """The counterpart of the test above: the choice of limits is what makes it ``none``."""
+    monkeypatch.setattr(engine, "RIG_LIMITS_MIN_M2LL", math.inf)
+    res = run_diagnosis(otherworld_study(tmp_path, [], seed=UNCLIPPED_SEED), None)
+    assert res.cause != "none", res.summary()
+    assert not any("beyond Steerlab's limits" in n for n in res.notes)
 
 
 def test_a_stage_out_of_time_says_what_it_left_undone(tmp_path, monkeypatch):
