@@ -569,8 +569,6 @@ def judge(results: Sequence[CandidateResult], held_out: bool) -> None:
                 )
             elif ok_bic:
                 r.reason = "better on BIC, but does not predict the other repetition"
-            elif ok_ho:
-                r.reason = "predicts held-out data a little better, but not enough for BIC"
             elif r.held_out_gain is None:
                 r.reason = "not better on BIC (so not tried on held-out data)"
             else:
