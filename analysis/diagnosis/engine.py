@@ -256,26 +256,28 @@ def choose_rig_limits(
     """
     trials = prep.trials
     everything = trials + prep.familiarization
-    limited = {t.label: t.safety for t in everything}
-    for t in everything:
-        t.safety = UNLIMITED
+    limited = [t.safety for t in everything]
+
+    def use(limits: Sequence[SafetyLimits]) -> None:
+        for t, lim in zip(everything, limits, strict=True):
+            t.safety = lim
+
+    use([UNLIMITED] * len(everything))
     free_start = 2.0 * sum(evaluate_cost(trials, spec, noise, fit.arms).values())
-    if abs(free_start - fit.m2ll) < 1e-6 * max(fit.m2ll, 1.0):
-        for t in everything:  # nothing was clipped: one model, Steerlab's limits
-            t.safety = limited[t.label]
+    free = None
+    # Equal costs: nothing was clipped, the two are one model and Steerlab's limits stay.
+    if abs(free_start - fit.m2ll) >= 1e-6 * max(fit.m2ll, 1.0):
+        free = fit_model(trials, spec, noise, fit.arms)
+    if free is None or free.m2ll >= fit.m2ll - RIG_LIMITS_MIN_M2LL:
+        use(limited)
         return fit
-    free = fit_model(trials, spec, noise, fit.arms)
-    if free.m2ll < fit.m2ll - RIG_LIMITS_MIN_M2LL:
-        prep.notes.append(
-            "the recording's rig applied commands beyond Steerlab's limits "
-            f"({SafetyLimits().max_torque_nm:g} N·m, {SafetyLimits().max_slew_nm_per_s:g} "
-            f"N·m/s): simulated without them, which fits by {fit.m2ll - free.m2ll:.0f} units "
-            "of −2 log L better"
-        )
-        return free
-    for t in everything:
-        t.safety = limited[t.label]
-    return fit
+    lim = limited[0]
+    prep.notes.append(
+        "the recording's rig applied commands beyond Steerlab's limits "
+        f"({lim.max_torque_nm:g} N·m, {lim.max_slew_nm_per_s:g} N·m/s): simulated without "
+        f"them, which fits by {fit.m2ll - free.m2ll:.0f} units of −2 log L better"
+    )
+    return free
 
 
 def build_setup(
