@@ -186,9 +186,14 @@ def test_steerlab_run_and_stop(tmp_path, short_protocol_file, lenient_rig):
     _, err = p.communicate(timeout=60)
     assert p.returncode == 3
     # The trial under way (the first, or the second where the stop command was slow to start
-    # on a loaded machine) was aborted.
-    r = SessionFile(out / "S01.h5").records()[-1]
-    assert r.status == "aborted" and "SIGUSR1" in r.abort_reason and r.n_samples > 0
+    # on a loaded machine) was aborted. Where the stop landed between the second trial's
+    # creation and its first sample, that trial holds none, and the first must be whole.
+    recs = SessionFile(out / "S01.h5").records()
+    r = recs[-1]
+    assert r.status == "aborted" and "SIGUSR1" in r.abort_reason
+    assert r.n_samples > 0 or (len(recs) == 2 and recs[0].status == "complete"), [
+        (x.source, x.status, x.n_samples) for x in recs
+    ]
     stopped = r.trial_index
     assert not pidfile.exists()
     # Resume finishes the session: the aborted trial again, then the rest.
