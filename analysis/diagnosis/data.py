@@ -20,9 +20,11 @@ Every trial is compared with the simulator on the same footing:
 
 from __future__ import annotations
 
+import json
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -39,7 +41,7 @@ from steerlab.analysis.periods import (
 )
 from steerlab.hardware.safety import SafetyLimits
 from steerlab.hardware.sim.physiology import ArmParams
-from steerlab.protocols.datafile import DataFileError
+from steerlab.protocols.datafile import DataFileError, SessionFile, session_files
 from steerlab.protocols.protocol import VirtualWheel
 from steerlab.protocols.records import STATUS_COMPLETE, TrialRecord
 
@@ -347,15 +349,58 @@ def _perturbation_present(rec: TrialRecord) -> bool:
     return tp.size > 0 and float(np.std(tp)) > 1e-3
 
 
+def recorded_rig_limits(directory: str | Path) -> tuple[dict[str, SafetyLimits], list[str]]:
+    """Session file → the command limits its rig recorded (``attrs["rig"]["safety"]``, written
+    by ``steerlab run`` and ``rig-check``), and a note per file whose record is unusable.
+
+    A rig that clipped at 6 N·m, or slewed at 200 N·m/s, applied another torque than Steerlab's
+    defaults would in simulation; imported and simulated studies record none and are simulated
+    with the defaults (:func:`analysis.diagnosis.engine.choose_rig_limits` then asks the data
+    whether the recording's rig clipped at all)."""
+    known = {f.name for f in fields(SafetyLimits)}
+    out: dict[str, SafetyLimits] = {}
+    notes: list[str] = []
+    for path in session_files(directory):
+        try:
+            rig = SessionFile(path).attrs.get("rig")
+        except (OSError, DataFileError):
+            continue  # load_study reports the file
+        if isinstance(rig, str):
+            try:
+                rig = json.loads(rig)
+            except json.JSONDecodeError:
+                rig = None
+        raw = rig.get("safety") if isinstance(rig, dict) else None
+        if not isinstance(raw, dict):
+            continue
+        try:
+            lim = SafetyLimits(**{k: v for k, v in raw.items() if k in known})
+            bad = lim.problems()
+        except TypeError as e:
+            bad = [("safety", str(e))]
+        if bad:
+            field_, why = bad[0]
+            notes.append(
+                f"{path.name}: the rig's recorded limits are unusable (rig.safety.{field_} "
+                f"{why}); simulated with Steerlab's defaults"
+            )
+            continue
+        out[str(path)] = lim
+    return out, notes
+
+
 def prepare_study(
     records: Sequence[TrialRecord],
     wheel: DiagnosisWheel | None = None,
     inertia_kgm2: float | None = None,
+    rig_limits: Mapping[str, SafetyLimits] | None = None,
 ) -> PreparedStudy:
     """Select and prepare the trials; raise :class:`DiagnosisError` when nothing is usable.
     ``wheel``: the wheel the data are checked against and simulated with (nominal by default;
     see :mod:`analysis.diagnosis.wheel`). ``inertia_kgm2``: hold every subject's arm inertia at
-    this value instead of fitting it from the data (see :func:`_cell_fits`)."""
+    this value instead of fitting it from the data (see :func:`_cell_fits`). ``rig_limits``:
+    session file → its rig's command limits (:func:`recorded_rig_limits`); trials of other
+    files are simulated with Steerlab's defaults."""
     rendered = wheel.rendered if wheel is not None else None
     if not records:
         raise DiagnosisError("no trials in the data")
@@ -392,6 +437,7 @@ def prepare_study(
     for r in chosen.values():
         try:
             t = prepare_trial(r, rendered)
+            t.safety = (rig_limits or {}).get(r.source.rsplit(":/trials/", 1)[0], t.safety)
         except ValueError as e:
             msg = str(e)
             skipped.append((r.label(), msg))
@@ -409,6 +455,10 @@ def prepare_study(
                 "period), so it needs at least one."
             )
         raise DiagnosisError(f"no measured trial can be diagnosed ({why}).{hint}")
+    own = sorted({(t.safety.max_torque_nm, t.safety.max_slew_nm_per_s) for t in trials + fam})
+    if own != [(SafetyLimits().max_torque_nm, SafetyLimits().max_slew_nm_per_s)]:
+        said = ", ".join(f"{a:g} N·m and {b:g} N·m/s" for a, b in own)
+        notes.append(f"simulated with the command limits the session files record ({said})")
     fs = {t.fs_hz for t in trials}
     if len(fs) > 1:
         notes.append(

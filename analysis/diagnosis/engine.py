@@ -273,7 +273,7 @@ def choose_rig_limits(
         return fit
     lim = limited[0]
     prep.notes.append(
-        "the recording's rig applied commands beyond Steerlab's limits "
+        "the recording's rig applied commands beyond the limits it was first simulated with "
         f"({lim.max_torque_nm:g} N·m, {lim.max_slew_nm_per_s:g} N·m/s): simulated without "
         f"them, which fits by {fit.m2ll - free.m2ll:.0f} units of −2 log L better"
     )

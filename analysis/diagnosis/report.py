@@ -76,7 +76,9 @@ def fig_candidates(result) -> Figure:
     y = np.arange(len(names))
     # Clipped for display: a diverged candidate can score −10¹⁶.
     dbic = np.clip([cand[n].get("delta_bic") or 0.0 for n in names], -1e7, 1e7)
-    ho = np.clip([cand[n].get("held_out_gain_minus2loglik") or 0.0 for n in names], -1e7, 1e7)
+    # None: not tried on held-out data (it failed on BIC); no bar, marked "not tried".
+    ho_raw = [cand[n].get("held_out_gain_minus2loglik") for n in names]
+    ho = np.clip([0.0 if v is None else v for v in ho_raw], -1e7, 1e7)
     colours = ["#1f77b4" if cand[n].get("retained") else "#bbbbbb" for n in names]
     ax1.barh(y, dbic, color=colours)
     ax1.axvline(-10, color="k", lw=0.8, ls=":")
@@ -85,10 +87,13 @@ def fig_candidates(result) -> Figure:
     ax1.set_yticks(y, names)
     ax1.invert_yaxis()
     ax1.set_xlabel("ΔBIC vs baseline (dotted: −10)")
-    ax2.barh(y, ho, color=colours)
+    tried = np.array([v is not None for v in ho_raw])
+    ax2.barh(y[tried], ho[tried], color=[c for c, t in zip(colours, tried, strict=True) if t])
     ax2.axvline(0, color="k", lw=0.8)
     ax2.set_xscale("symlog", linthresh=10)
     ax2.set_xlim(min(ho.min() * 2, -30), max(ho.max() * 2, 30))
+    for yi in y[~tried]:
+        ax2.text(0, yi, " not tried (ΔBIC)", va="center", ha="left", fontsize=7, color="#777777")
     ax2.set_yticks(y, [""] * len(names))
     ax2.invert_yaxis()
     ax2.set_xlabel("held-out gain, −2 log L (> 0: better)")

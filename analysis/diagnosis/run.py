@@ -16,7 +16,13 @@ import numpy as np
 from steerlab.analysis.diagnosis import compare as C
 from steerlab.analysis.diagnosis import engine
 from steerlab.analysis.diagnosis.candidates import CANDIDATE_NAMES
-from steerlab.analysis.diagnosis.data import DiagnosisError, PreparedStudy, TrialData, prepare_study
+from steerlab.analysis.diagnosis.data import (
+    DiagnosisError,
+    PreparedStudy,
+    TrialData,
+    prepare_study,
+    recorded_rig_limits,
+)
 from steerlab.analysis.diagnosis.drift import DriftResult, TrialStiffness, analyse_drift
 from steerlab.analysis.diagnosis.engine import (
     Selection,
@@ -253,7 +259,9 @@ def _run(
     records = load_study(directory)
     # The actuator lag becomes the simulated loop's discrete lag at the data's rate.
     wheel = choice.wheel(float(np.median([r.fs_hz for r in records])) if records else 1000.0)
-    prep = prepare_study(records, wheel, inertia_kgm2)
+    rig_limits, limit_notes = recorded_rig_limits(directory)
+    prep = prepare_study(records, wheel, inertia_kgm2, rig_limits)
+    prep.notes.extend(limit_notes)
     base_mech = Mechanisms()
     model_baseline = None
     base_drift = 0.0
@@ -801,6 +809,20 @@ def _model_text(
         "[baseline.*]: the typical subject per condition (geometric mean over subjects); "
         "[mechanisms.*]: the retained mechanisms, fitted parameters with se and ci95.",
     ]
+    lim = setup.trials[0].safety
+    if lim.max_torque_nm >= engine.UNLIMITED.max_torque_nm:
+        # Replays (simulate --model) clip at Steerlab's limits all the same: a protocol's
+        # perturbation stays within them, and a model file must not lift a safety limit.
+        header["rig_command_limits"] = "none"
+        comments.append(
+            "The recording's rig applied commands beyond Steerlab's limits: the diagnosis "
+            "simulated it without them (rig_command_limits)"
+        )
+    else:
+        header["rig_command_limits"] = {
+            "max_torque_nm": lim.max_torque_nm,
+            "max_slew_nm_per_s": lim.max_slew_nm_per_s,
+        }
     rig_json = result.wheel.get("rig_json")
     if rig_json:
         # The measured wheel's friction, imbalance and lag are among [mechanisms.*]; its

@@ -138,3 +138,18 @@ def test_replay_blocks_keep_the_worlds_noise_block_contract():
     d = w3.run(tp)
     for k in ("wheel_angle_rad", "driver_torque_Nm"):
         np.testing.assert_allclose(d[k], a[k], rtol=0, atol=1e-12)
+
+
+def test_the_candidates_figure_marks_a_held_out_gain_not_tried_rather_than_zero():
+    from types import SimpleNamespace
+
+    from steerlab.analysis.diagnosis.report import fig_candidates
+
+    cand = {
+        "reflex_delay": {"delta_bic": -40.0, "held_out_gain_minus2loglik": 12.0, "retained": True},
+        "sensor_delay": {"delta_bic": 3.0, "held_out_gain_minus2loglik": None},
+    }
+    fig = fig_candidates(SimpleNamespace(candidates=cand))
+    held_out = fig.axes[1]
+    assert len(held_out.patches) == 1  # one bar: the candidate that was tried
+    assert [t.get_text().strip() for t in held_out.texts] == ["not tried (ΔBIC)"]

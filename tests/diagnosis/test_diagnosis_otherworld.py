@@ -62,7 +62,7 @@ def test_a_rig_that_applies_torque_beyond_steerlabs_limit_is_simulated_without_i
     res = run_diagnosis(otherworld_study(tmp_path, [], seed=UNCLIPPED_SEED), None)
     assert res.cause == "none", res.summary()
     assert res.unexplained["within_noise"], res.unexplained
-    assert any("beyond Steerlab's limits" in n for n in res.notes), res.notes
+    assert any("beyond the limits" in n for n in res.notes), res.notes
 
 
 @pytest.mark.slow
@@ -71,7 +71,7 @@ def test_with_steerlabs_limit_imposed_the_same_null_study_is_a_false_alarm(tmp_p
     monkeypatch.setattr(engine, "RIG_LIMITS_MIN_M2LL", math.inf)
     res = run_diagnosis(otherworld_study(tmp_path, [], seed=UNCLIPPED_SEED), None)
     assert res.cause != "none", res.summary()
-    assert not any("beyond Steerlab's limits" in n for n in res.notes)
+    assert not any("beyond the limits" in n for n in res.notes)
 
 
 def test_a_stage_out_of_time_says_what_it_left_undone(tmp_path, monkeypatch):
