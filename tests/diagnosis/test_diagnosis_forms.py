@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from steerlab.analysis.diagnosis import drift as drift_module
 from steerlab.analysis.diagnosis.candidates import CANDIDATES, candidate
 from steerlab.analysis.diagnosis.drift import TrialStiffness, analyse_drift
 from steerlab.hardware.sim.mechanisms import Mechanisms
@@ -38,9 +39,12 @@ def test_forms_fit_their_own_parameters():
     assert [p.field for p in fric.with_form(visc).params] == ["torque_nm", "viscous_nms_per_rad"]
 
 
-def _rows(factor, seed: int, subjects: int = 2, sd: float = 0.01) -> list[TrialStiffness]:
+def _rows(
+    factor, seed: int, subjects: int = 2, sd: float = 0.01, sds: dict | None = None
+) -> list[TrialStiffness]:
     """Two repetitions per condition back to back, conditions in a random order per subject;
-    k_i and k_c scaled by ``factor(trial_index)`` with log-normal scatter ``sd``."""
+    k_i and k_c scaled by ``factor(trial_index)`` with log-normal scatter ``sd`` (or ``sds``
+    per condition)."""
     rng = np.random.default_rng(seed)
     k0 = {"RT": (30.0, 120.0), "BT12": (70.0, 190.0), "PT": (300.0, 400.0)}
     rows = []
@@ -50,7 +54,8 @@ def _rows(factor, seed: int, subjects: int = 2, sd: float = 0.01) -> list[TrialS
             for rep in (1, 2):
                 ti += 1
                 f = factor(ti)
-                ki, kc = (k * f * np.exp(sd * rng.standard_normal()) for k in k0[c])
+                sd_c = (sds or {}).get(c, sd)
+                ki, kc = (k * f * np.exp(sd_c * rng.standard_normal()) for k in k0[c])
                 rows.append(TrialStiffness(f"S{s}_{ti}", (f"S{s}", c), ti, rep, ki, kc))
     return rows
 
@@ -77,7 +82,21 @@ def test_stepwise_drift_is_named_with_its_trial_and_recovered():
 def test_no_drift_rarely_passes_despite_the_choice_of_change_point():
     """The change point is chosen on the data; the held-out check keeps false alarms rare."""
     passed = [analyse_drift(_rows(lambda i: 1.0, seed=s)).passed for s in range(40)]
-    assert sum(passed) <= 2, sum(passed)  # ≤ 5 %; 2 of 100 over seeds 0–99
+    assert sum(passed) <= 2, sum(passed)  # ≤ 5 %; 1 of 200 over seeds 0–199
+
+
+@pytest.mark.slow  # a Monte Carlo: the slow tier (README)
+def test_two_trials_per_cell_do_not_double_the_evidence_for_drift(monkeypatch):
+    """With a mean per cell and two trials in it, the likelihood profiled over the means
+    (n in n log RSS/n) takes the scatter as half what it is (Neyman & Scott) and doubles any
+    trend's evidence; the restricted likelihood (n − cells) does not. Scatter differing
+    between conditions (stiff conditions scatter more) is the harder case."""
+    sds = {"RT": 0.01, "BT12": 0.02, "PT": 0.04}
+    rows = [_rows(lambda i: 1.0, seed=s, sds=sds) for s in range(40)]
+    passed = sum(analyse_drift(r).passed for r in rows)
+    assert passed <= 1, passed  # 0 of 200 over seeds 0–199
+    monkeypatch.setattr(drift_module, "_dof", len)  # the profiled (ML) likelihood
+    assert sum(analyse_drift(r).passed for r in rows) >= passed + 2  # 12 of 200
 
 
 def test_drift_of_k_i_alone_is_named_so():
