@@ -64,7 +64,8 @@ def main(argv: list[str]) -> dict:
     ap.add_argument("--likelihood", choices=("restricted", "profiled"), default="restricted")
     a = ap.parse_args(argv)
     if a.likelihood == "profiled":
-        drift._dof = len  # n − 0 cells
+        # n in place of ν = n − cells: the likelihood profiled over the cell means.
+        setattr(drift, "_dof", len)  # noqa: B010 (a module's function, swapped for a benchmark)
     t0 = time.process_time()
     lines = []
     for dname, conds in DESIGNS.items():
