@@ -350,8 +350,9 @@ def _perturbation_present(rec: TrialRecord) -> bool:
 
 
 def recorded_rig_limits(directory: str | Path) -> tuple[dict[str, SafetyLimits], list[str]]:
-    """Session file → the command limits its rig recorded (``attrs["rig"]["safety"]``, written
-    by ``steerlab run`` and ``rig-check``), and a note per file whose record is unusable.
+    """Session file (resolved path) → the command limits its rig recorded
+    (``attrs["rig"]["safety"]``, written by ``steerlab run`` and ``rig-check``), and a note per
+    file whose record is unusable.
 
     A rig that clipped at 6 N·m, or slewed at 200 N·m/s, applied another torque than Steerlab's
     defaults would in simulation; imported and simulated studies record none and are simulated
@@ -360,32 +361,42 @@ def recorded_rig_limits(directory: str | Path) -> tuple[dict[str, SafetyLimits],
     known = {f.name for f in fields(SafetyLimits)}
     out: dict[str, SafetyLimits] = {}
     notes: list[str] = []
+
+    def unusable(path: Path, why: str) -> None:
+        notes.append(
+            f"{path.name}: the rig's recorded limits are unusable ({why}); simulated with "
+            "Steerlab's defaults"
+        )
+
     for path in session_files(directory):
         try:
             rig = SessionFile(path).attrs.get("rig")
         except (OSError, DataFileError):
             continue  # load_study reports the file
+        if rig is None:
+            continue  # not recorded: an imported or simulated study
         if isinstance(rig, str):
             try:
                 rig = json.loads(rig)
-            except json.JSONDecodeError:
-                rig = None
+            except json.JSONDecodeError as e:
+                unusable(path, f"attribute rig is not JSON: {e}")
+                continue
         raw = rig.get("safety") if isinstance(rig, dict) else None
+        if raw is None and isinstance(rig, dict):
+            continue  # a rig record without limits
         if not isinstance(raw, dict):
+            unusable(path, "rig.safety is not a table of limits")
             continue
         try:
             lim = SafetyLimits(**{k: v for k, v in raw.items() if k in known})
             bad = lim.problems()
         except TypeError as e:
-            bad = [("safety", str(e))]
+            bad = [("", str(e))]
         if bad:
             field_, why = bad[0]
-            notes.append(
-                f"{path.name}: the rig's recorded limits are unusable (rig.safety.{field_} "
-                f"{why}); simulated with Steerlab's defaults"
-            )
+            unusable(path, f"rig.safety.{field_} {why}" if field_ else f"rig.safety: {why}")
             continue
-        out[str(path)] = lim
+        out[str(path.resolve())] = lim
     return out, notes
 
 
@@ -437,7 +448,9 @@ def prepare_study(
     for r in chosen.values():
         try:
             t = prepare_trial(r, rendered)
-            t.safety = (rig_limits or {}).get(r.source.rsplit(":/trials/", 1)[0], t.safety)
+            if rig_limits:
+                source = Path(r.source.rsplit(":/trials/", 1)[0]).resolve()
+                t.safety = rig_limits.get(str(source), t.safety)
         except ValueError as e:
             msg = str(e)
             skipped.append((r.label(), msg))
@@ -455,9 +468,15 @@ def prepare_study(
                 "period), so it needs at least one."
             )
         raise DiagnosisError(f"no measured trial can be diagnosed ({why}).{hint}")
-    own = sorted({(t.safety.max_torque_nm, t.safety.max_slew_nm_per_s) for t in trials + fam})
-    if own != [(SafetyLimits().max_torque_nm, SafetyLimits().max_slew_nm_per_s)]:
-        said = ", ".join(f"{a:g} N·m and {b:g} N·m/s" for a, b in own)
+    # The limits the simulated command sees (the loop's timeouts do not shape it).
+    shaping = ("max_torque_nm", "max_slew_nm_per_s", "soft_angle_limit_deg", "fade_zone_deg",
+               "brake_damping_nms_per_rad")  # fmt: skip
+    own = sorted({tuple(getattr(t.safety, k) for k in shaping) for t in trials + fam})
+    if own != [tuple(getattr(SafetyLimits(), k) for k in shaping)]:
+        said = "; ".join(
+            f"{v[0]:g} N·m, {v[1]:g} N·m/s, soft angle limit {v[2]:g}° (fade {v[3]:g}°)"
+            for v in own
+        )
         notes.append(f"simulated with the command limits the session files record ({said})")
     fs = {t.fs_hz for t in trials}
     if len(fs) > 1:

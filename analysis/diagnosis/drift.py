@@ -23,7 +23,8 @@ do not.
   (Neyman & Scott, 1948) the likelihood with n, profiled over the cell means, takes the
   scatter as half (two trials per cell) or two thirds (three) of what it is, at any number of
   subjects, and so doubles the evidence for any trend. On simulated stiffnesses of the 12-trial
-  design (200 sessions each; one scatter of 1 %, 0.5/1/3 % or 1/2/4 % by condition) the
+  design (the tests' ``_rows``, seeds 0–199; one scatter of 1 %, 0.5/1/3 % or 1/2/4 % by
+  condition) the
   profiled form at ΔBIC < −10 passed 6, 9 and 12 drift-free sessions, the restricted form at
   −8 (:data:`MIN_DBIC`) 2, 6 and 2; drift of 4 % per trial is found in 200 (profiled: 200),
   2 % in 90 (174), 1 % in 13 (57), a 10 % step of k_i in 127 (197). On the independent
@@ -63,7 +64,7 @@ PARAMS = ("k_i", "k_c")
 # 2 repetitions, 2 % scatter or 1/2/4 % by condition: at 8 at most 2 of 200 pass (at 6: 5,
 # at 10: 1), and a step of k_i by 30 % inside a condition is found in 37–92 % (6: 55–98 %,
 # 10: 21–80 %). (With the likelihood profiled over the cell means, which doubles the evidence,
-# 10 had let 6–12 of 200 pass.)
+# 10 had let 6–16 of 200 pass: python -m benchmarks drift_calibration --likelihood profiled.)
 MIN_DBIC = 8.0
 MIN_HELD_OUT = 0.0
 

@@ -262,7 +262,13 @@ def choose_rig_limits(
         for t, lim in zip(everything, limits, strict=True):
             t.safety = lim
 
-    use([UNLIMITED] * len(everything))
+    # Only the torque and slew limits are dropped: a recorded soft angle limit stays.
+    unlimited = [
+        replace(lim, max_torque_nm=UNLIMITED.max_torque_nm,
+                max_slew_nm_per_s=UNLIMITED.max_slew_nm_per_s)
+        for lim in limited
+    ]  # fmt: skip
+    use(unlimited)
     free_start = 2.0 * sum(evaluate_cost(trials, spec, noise, fit.arms).values())
     free = None
     # Equal costs: nothing was clipped, the two are one model and Steerlab's limits stay.

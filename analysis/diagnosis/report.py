@@ -86,14 +86,16 @@ def fig_candidates(result) -> Figure:
     ax1.set_xlim(min(dbic.min() * 2, -30), max(dbic.max() * 2, 30))
     ax1.set_yticks(y, names)
     ax1.invert_yaxis()
-    ax1.set_xlabel("ΔBIC vs baseline (dotted: −10)")
+    ax1.set_xlabel("ΔBIC vs baseline (dotted: −10; drift's: −8)")
     tried = np.array([v is not None for v in ho_raw])
     ax2.barh(y[tried], ho[tried], color=[c for c, t in zip(colours, tried, strict=True) if t])
     ax2.axvline(0, color="k", lw=0.8)
     ax2.set_xscale("symlog", linthresh=10)
     ax2.set_xlim(min(ho.min() * 2, -30), max(ho.max() * 2, 30))
     for yi in y[~tried]:
-        ax2.text(0, yi, " not tried (ΔBIC)", va="center", ha="left", fontsize=7, color="#777777")
+        # Not tried because it failed on BIC, or because the study has no held-out data.
+        why = "not tried (ΔBIC)" if "not tried" in cand[names[yi]].get("reason", "") else "none"
+        ax2.text(0, yi, f" {why}", va="center", ha="left", fontsize=7, color="#777777")
     ax2.set_yticks(y, [""] * len(names))
     ax2.invert_yaxis()
     ax2.set_xlabel("held-out gain, −2 log L (> 0: better)")

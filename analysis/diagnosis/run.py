@@ -809,20 +809,22 @@ def _model_text(
         "[baseline.*]: the typical subject per condition (geometric mean over subjects); "
         "[mechanisms.*]: the retained mechanisms, fitted parameters with se and ci95.",
     ]
-    lim = setup.trials[0].safety
-    if lim.max_torque_nm >= engine.UNLIMITED.max_torque_nm:
-        # Replays (simulate --model) clip at Steerlab's limits all the same: a protocol's
-        # perturbation stays within them, and a model file must not lift a safety limit.
+    # What the diagnosis simulated, for the record: replays (simulate --model) clip at
+    # Steerlab's limits all the same (a model file must not lift or set a safety limit).
+    limits = sorted({(t.safety.max_torque_nm, t.safety.max_slew_nm_per_s) for t in setup.trials})
+    if all(torque >= engine.UNLIMITED.max_torque_nm for torque, _ in limits):
         header["rig_command_limits"] = "none"
         comments.append(
             "The recording's rig applied commands beyond Steerlab's limits: the diagnosis "
             "simulated it without them (rig_command_limits)"
         )
     else:
-        header["rig_command_limits"] = {
-            "max_torque_nm": lim.max_torque_nm,
-            "max_slew_nm_per_s": lim.max_slew_nm_per_s,
-        }
+        tables = [{"max_torque_nm": a, "max_slew_nm_per_s": b} for a, b in limits]
+        header["rig_command_limits"] = tables[0] if len(tables) == 1 else tables
+        comments.append(
+            "rig_command_limits: the recording's limits the diagnosis simulated (not applied "
+            "by simulate --model, which clips at the simulated rig's own)"
+        )
     rig_json = result.wheel.get("rig_json")
     if rig_json:
         # The measured wheel's friction, imbalance and lag are among [mechanisms.*]; its

@@ -147,9 +147,18 @@ def test_the_candidates_figure_marks_a_held_out_gain_not_tried_rather_than_zero(
 
     cand = {
         "reflex_delay": {"delta_bic": -40.0, "held_out_gain_minus2loglik": 12.0, "retained": True},
-        "sensor_delay": {"delta_bic": 3.0, "held_out_gain_minus2loglik": None},
-    }
+        "sensor_delay": {"delta_bic": 3.0, "held_out_gain_minus2loglik": None,
+                         "reason": "not better on BIC (so not tried on held-out data)"},
+    }  # fmt: skip
     fig = fig_candidates(SimpleNamespace(candidates=cand))
     held_out = fig.axes[1]
     assert len(held_out.patches) == 1  # one bar: the candidate that was tried
     assert [t.get_text().strip() for t in held_out.texts] == ["not tried (ΔBIC)"]
+    # A study without held-out data (one repetition): no candidate has a gain, none "failed".
+    cand["reflex_delay"].update(held_out_gain_minus2loglik=None, reason="better on BIC (no "
+                                "held-out check possible)")  # fmt: skip
+    cand["sensor_delay"]["reason"] = "not better on BIC"
+    texts = [
+        t.get_text().strip() for t in fig_candidates(SimpleNamespace(candidates=cand)).axes[1].texts
+    ]
+    assert texts == ["none", "none"]

@@ -60,10 +60,21 @@ def test_recorded_limits_are_read_and_unusable_ones_named(clipped_study, tmp_pat
     d = _with_rig_record(clipped_study, tmp_path / "rec", asdict(LOW))
     limits, notes = recorded_rig_limits(d)
     assert list(limits.values()) == [LOW] and notes == []
+    # Keys Steerlab does not know (a newer rig file's) are left out, not an error.
+    newer = _with_rig_record(clipped_study, tmp_path / "newer", {**asdict(LOW), "jerk": 1.0})
+    assert list(recorded_rig_limits(newer)[0].values()) == [LOW]
     bad = _with_rig_record(clipped_study, tmp_path / "bad", {"max_torque_nm": -1.0})
     limits, notes = recorded_rig_limits(bad)
     assert limits == {} and len(notes) == 1
     assert "S01.h5" in notes[0] and "rig.safety.max_torque_nm" in notes[0], notes
+    # A record that is not JSON, or whose limits are not a table: named, and the defaults used.
+    for i, raw in enumerate(("{not json", json.dumps({"safety": 8.0}))):
+        d = tmp_path / f"raw{i}"
+        shutil.copytree(clipped_study, d)
+        with h5py.File(next(d.glob("*.h5")), "a") as f:
+            f.attrs["rig"] = raw
+        limits, notes = recorded_rig_limits(d)
+        assert limits == {} and len(notes) == 1 and "unusable" in notes[0], notes
 
 
 def test_a_study_clipped_by_its_rig_is_simulated_with_the_recorded_limits(clipped_study, tmp_path):

@@ -60,10 +60,10 @@ def _check_the_whole_session(devices, state, recs) -> None:
     # Every cycle went over the bus: one SYNC per sample (plus the zeroing cycles).
     assert devices.node.sync_count >= 2 * SHORT_TRIAL_SAMPLES
     st = devices.glove.stats()
-    # rate_hz counts host arrivals over the last second: a host starved by the load reads a
-    # backlog in a burst (106.7 Hz seen in CI), so only gross errors are caught here; the
-    # sample-time rate is checked from the recorded grip force below.
-    assert 80 < st.rate_hz < 125 and st.crc_errors == 0
+    # Frames arrived, intact. Their rate is checked in sample time, from the recorded grip
+    # force below: rate_hz counts host arrivals over the last second, and a host starved by
+    # the load reads a backlog in a burst (106.7 Hz seen in CI; a 0.3 s stall gives ~130 Hz).
+    assert st.frames > 0 and st.rate_hz > 0 and st.crc_errors == 0
     # Grip force arrived through the pty at about 100 Hz: held values change every ~10 samples.
     changes = np.count_nonzero(np.diff(r.grip_force_N)) / (r.n_samples / 1000)
     assert 60 < changes < 110
