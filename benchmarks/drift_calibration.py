@@ -5,7 +5,8 @@ This draws such stiffnesses without and with drift and counts how often drift is
 thresholds around the default (``drift.MIN_DBIC``): the figures behind the threshold's choice
 in docs/diagnosis.md ("Drift"), reproducible.
 
-Designs: 2 subjects × 2 conditions (BT12, PT: 8 trials) or × 3 (RT, BT12, PT: 12 trials), two
+Designs: 1 or 2 subjects × 2 conditions (BT12, PT: 4 or 8 trials) or × 3 (RT, BT12, PT: 6 or
+12 trials; with one subject ν = 2 or 3, below ``drift.MIN_DOF``: not judged), two
 repetitions back to back, conditions in a random order per subject, no familiarization trial
 (as the independent world's studies); log-normal scatter of one SD for every condition, or
 1, 2 and 4 % by condition (stiff conditions scatter more). Effects: none; k_i × 1.3 from trial
@@ -28,7 +29,13 @@ import numpy as np
 from steerlab.benchmarks.machine import machine
 
 K0 = {"RT": (30.0, 120.0), "BT12": (70.0, 190.0), "PT": (300.0, 400.0)}  # k_i, k_c (N·m/rad)
-DESIGNS = {"8 trials": ("BT12", "PT"), "12 trials": ("RT", "BT12", "PT")}
+# name → (conditions, subjects)
+DESIGNS = {
+    "4 trials (1 subject)": (("BT12", "PT"), 1),
+    "6 trials (1 subject)": (("RT", "BT12", "PT"), 1),
+    "8 trials": (("BT12", "PT"), 2),
+    "12 trials": (("RT", "BT12", "PT"), 2),
+}
 SCATTERS = {"2 %": {c: 0.02 for c in K0}, "1/2/4 % by condition": {"RT": 0.01, "BT12": 0.02,
                                                                    "PT": 0.04}}  # fmt: skip
 EFFECTS = {
@@ -63,16 +70,19 @@ def main(argv: list[str]) -> dict:
     ap.add_argument("--thresholds", type=float, nargs="*", default=[6.0, 8.0, 10.0])
     ap.add_argument("--likelihood", choices=("restricted", "profiled"), default="restricted")
     a = ap.parse_args(argv)
-    if a.likelihood == "profiled":
+    profiled = a.likelihood == "profiled"  # as before 2026-11-26: no MIN_DOF either
+    if profiled:
         # n in place of ν = n − cells: the likelihood profiled over the cell means.
         setattr(drift, "_dof", len)  # noqa: B010 (a module's function, swapped for a benchmark)
     t0 = time.process_time()
     lines = []
-    for dname, conds in DESIGNS.items():
+    for dname, (conds, subjects) in DESIGNS.items():
         for sname, sds in SCATTERS.items():
             for ename, (factor, ki_alone) in EFFECTS.items():
                 res = [
-                    drift.analyse_drift(stiffness_rows(factor, s, conds, sds, ki_alone))
+                    drift.analyse_drift(
+                        stiffness_rows(factor, s, conds, sds, ki_alone, subjects=subjects)
+                    )
                     for s in range(a.sessions)
                 ]
                 # Retained at threshold T: ΔBIC < −T and a positive leave-one-out gain (the
@@ -81,7 +91,10 @@ def main(argv: list[str]) -> dict:
                     f"{t:g}": sum(
                         1
                         for r in res
-                        if r is not None and r.delta_bic < -t and (r.held_out_gain or 0) > 0
+                        if r is not None
+                        and r.delta_bic < -t
+                        and (r.held_out_gain or 0) > 0
+                        and (profiled or r.n_trials - r.n_cells >= drift.MIN_DOF)
                     )
                     for t in a.thresholds
                 }

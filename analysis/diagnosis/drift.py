@@ -67,6 +67,11 @@ PARAMS = ("k_i", "k_c")
 # 10 had let 6–16 of 200 pass: python -m benchmarks drift_calibration --likelihood profiled.)
 MIN_DBIC = 8.0
 MIN_HELD_OUT = 0.0
+# Within-condition differences (ν) below which drift is not judged: with 2 or 3 the scatter
+# is estimated from as many numbers and the test's tails are far heavier than its χ² (one
+# subject, two or three conditions of two trials: 2–3.5 % of drift-free sessions passed at
+# ΔBIC < −8; two subjects, ν 4 and 6: at most 1 %; python -m benchmarks drift_calibration).
+MIN_DOF = 4
 
 
 @dataclass(frozen=True)
@@ -314,8 +319,15 @@ def analyse_drift(rows: Sequence[TrialStiffness], r0: float = 0.0) -> DriftResul
 
     ok_bic = d_bic < -MIN_DBIC
     ok_ho = gain > MIN_HELD_OUT
-    passed = ok_bic and ok_ho
-    if passed:
+    nu = _dof(cid)
+    passed = ok_bic and ok_ho and nu >= MIN_DOF
+    if nu < MIN_DOF:
+        reason = (
+            f"not judged: {nu} differences between trials of the same subject and condition; "
+            f"at least {MIN_DOF} are needed to tell a trend from their scatter (more subjects, "
+            "repetitions or the familiarization trials)"
+        )
+    elif passed:
         reason = "stiffness changes with trial order, on BIC and in leave-one-out prediction"
     elif ok_bic:
         reason = "better on BIC, but does not predict left-out trials"

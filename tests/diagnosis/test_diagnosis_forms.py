@@ -90,6 +90,21 @@ def test_two_trials_per_cell_do_not_double_the_evidence_for_drift(monkeypatch):
     assert sum(analyse_drift(r).passed for r in rows) >= 6  # 10 here; 15 of 200
 
 
+def test_drift_is_not_judged_on_fewer_than_four_within_condition_differences():
+    """One subject, two conditions of two trials: the scatter comes from two differences, and
+    a trend fitted to them looks strong by chance (with the likelihood before, 15–29 of 200
+    such drift-free sessions passed; python -m benchmarks drift_calibration). Even a 30 %
+    step is then not retained, and the reason says why."""
+    conditions = ("BT12", "PT")
+    sd = {c: 0.02 for c in conditions}
+    rows = stiffness_rows(lambda i: 1.3 if i >= 2 else 1.0, 1, conditions, sd, ki_alone=True,
+                          subjects=1)  # fmt: skip
+    res = analyse_drift(rows)
+    assert res is not None and not res.passed, res
+    assert res.reason.startswith("not judged: 2 differences"), res.reason
+    assert res.delta_bic < -drift_module.MIN_DBIC, res  # it would have passed on ΔBIC
+
+
 def test_drift_of_k_i_alone_is_named_so():
     """Another lab's drift may move the intrinsic stiffness alone (the contact staying)."""
 
