@@ -293,7 +293,7 @@ def with_drive_channels(records: Sequence[TrialRecord]) -> list[TrialRecord]:
     missing = [i for i, r in enumerate(out) if r.driving and "lane_width_m" not in r.extra]
     by_file: dict[str, list[int]] = {}
     for i in missing:
-        path = (out[i].source or "").rsplit(":/trials/", 1)[0]
+        path = out[i].source_file
         if path:
             by_file.setdefault(path, []).append(i)
     for path, idx in by_file.items():

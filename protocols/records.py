@@ -65,6 +65,11 @@ class TrialRecord:
         return len(self.time_s)
 
     @property
+    def source_file(self) -> str:
+        """The file part of ``source`` (the session file of "file.h5:/trials/…"); "" if none."""
+        return self.source.rsplit(":/trials/", 1)[0]
+
+    @property
     def time_varying(self) -> bool:
         """Whether the task changed within the trial (it has a ``schedule``, or it is a driving
         trial: the road changes along the drive)."""

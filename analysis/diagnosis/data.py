@@ -449,8 +449,7 @@ def prepare_study(
         try:
             t = prepare_trial(r, rendered)
             if rig_limits:
-                source = Path(r.source.rsplit(":/trials/", 1)[0]).resolve()
-                t.safety = rig_limits.get(str(source), t.safety)
+                t.safety = rig_limits.get(str(Path(r.source_file).resolve()), t.safety)
         except ValueError as e:
             msg = str(e)
             skipped.append((r.label(), msg))

@@ -215,9 +215,9 @@ def _rss(
 def _m2ll(
     cid: np.ndarray, idx: np.ndarray, y: np.ndarray, r: float, form: DriftForm = LINEAR
 ) -> float:
-    n = _dof(cid)
+    nu = _dof(cid)
     rss = np.maximum(_rss(cid, idx, y, r, form), 1e-300)
-    return float(np.sum(n * np.log(rss / n)))
+    return float(np.sum(nu * np.log(rss / nu)))
 
 
 def _dof(cid: np.ndarray) -> int:
@@ -279,8 +279,9 @@ def analyse_drift(rows: Sequence[TrialStiffness], r0: float = 0.0) -> DriftResul
     m1, form, r_hat = fits[0]
     forms_m2ll = {f.name: m for m, f, _ in fits}
     d_m2ll = m0 - m1
+    nu = _dof(cid)
     # The family's prior is shared among its forms (1/K each): 2 ln K on the −2 log L scale.
-    d_bic = -d_m2ll + form.n_params * math.log(_dof(cid) * len(PARAMS)) + 2 * math.log(len(fits))
+    d_bic = -d_m2ll + form.n_params * math.log(nu * len(PARAMS)) + 2 * math.log(len(fits))
 
     def excess(r: float) -> float:
         return _m2ll(cid, idx, y, r, form) - m1 - 3.84
@@ -319,7 +320,6 @@ def analyse_drift(rows: Sequence[TrialStiffness], r0: float = 0.0) -> DriftResul
 
     ok_bic = d_bic < -MIN_DBIC
     ok_ho = gain > MIN_HELD_OUT
-    nu = _dof(cid)
     passed = ok_bic and ok_ho and nu >= MIN_DOF
     if nu < MIN_DOF:
         reason = (

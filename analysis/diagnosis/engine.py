@@ -243,9 +243,10 @@ def set_remnants(trials: Sequence[TrialData], arms: dict[str, ArmParams], k: int
 def choose_rig_limits(
     prep: PreparedStudy, spec: ModelSpec, noise: NoiseModel, fit: FitResult
 ) -> FitResult:
-    """The baseline with Steerlab's command limits (8 N·m, 400 N·m/s) or with none, whichever
-    explains the study better; ``fit`` is the baseline with the limits. Sets ``safety`` on
-    every trial and says in ``prep.notes`` when the limits are dropped.
+    """The baseline with the trials' command limits (those the session files record, else
+    Steerlab's 8 N·m, 400 N·m/s) or without torque and slew limits, whichever explains the
+    study better; ``fit`` is the baseline with the limits. Sets ``safety`` on every trial and
+    says in ``prep.notes`` when the limits are dropped.
 
     The simulated loop clips its command as Steerlab's rig does, but the recording's rig may
     not have. On the independent world's null seed 5001 the multisine peaks at 9.3 N·m and
