@@ -92,9 +92,14 @@ STARVED = ("control loop stalled", "0x8130")
 
 
 def starved(recs) -> bool:
+    """Whether any of ``recs`` (trial records, or the engine's TrialEnded events) was aborted
+    for one of the STARVED reasons."""
     return any(
-        r.status == "aborted" and any(s in (r.abort_reason or "") for s in STARVED) for r in recs
-    )
+        r.status == "aborted"
+        and any(s in (getattr(r, "abort_reason", None) or getattr(r, "reason", None) or "")
+                for s in STARVED)
+        for r in recs
+    )  # fmt: skip
 
 
 @contextmanager

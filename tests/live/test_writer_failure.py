@@ -30,7 +30,7 @@ from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.session import build_plan
 from tests.hardware.can_wire import wait_for
 from tests.helpers import ROOT
-from tests.live.conftest import SHORT_TRIAL_SAMPLES
+from tests.live.conftest import SHORT_TRIAL_SAMPLES, on_fresh_rigs
 
 
 @pytest.fixture
@@ -97,50 +97,60 @@ def test_disk_filled_mid_trial(devices, short_protocol, tiny_disk):
     assert r.n_samples == loop.trial_stats()["samples"] == emitted + 50 >= 1500
 
 
-def test_io_error_mid_trial(devices, short_protocol, tmp_path):
-    loop = devices.device_loop()
-    path = tmp_path / "S02.h5"
+def _runner(protocol, inject):
+    """``_session`` as ``on_fresh_rigs`` runs it (again on a fresh rig while a host starved of
+    the CPU ended the trial before the fault): its result, the file's path and the loop."""
 
-    def break_disk(writer):
+    def run(rig, where):
+        loop = rig.device_loop()
+        path = where / "S02.h5"
+        state, ends, *rest = _session(loop, protocol, path, lambda w: inject(w, path))
+        return (state, ends, *rest, path, loop)
+
+    return run
+
+
+def test_io_error_mid_trial(devices, rig_config, short_protocol, tmp_path):
+    def break_disk(writer, _path):
         def write_out():
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
         writer._write_out = write_out
         return {"written": writer._written}
 
-    state, (end,), emitted, writer, info = _session(loop, short_protocol, path, break_disk)
-    assert end.status == "aborted" and "No space left on device" in end.reason
-    assert writer.failure is not None
-    _motor_off(devices)
-    assert loop.trial_stats()["samples"] == emitted + 50  # nothing after the failing block
-    (r,) = SessionFile(path).records()  # readable
-    assert r.status == "aborted" and "No space left on device" in r.abort_reason
-    # every sample written before the failure (the writer writes every 0.5 s)
-    assert r.n_samples >= info["written"] >= 1000
-    assert r.n_samples <= emitted
-    # The samples the file did not take (the buffer and the failing block) are in the
-    # unsaved-samples file next to it, named in the reason: together, every sample the loop
-    # took, contiguous, with the values the loop gave.
-    samples = loop.trial_stats()["samples"]
-    assert writer.unsaved_file == unsaved_path(path, end.key)
-    assert str(writer.unsaved_file) in end.reason
-    first, unsaved = load_unsaved(writer.unsaved_file)
-    assert first == r.n_samples and first + len(unsaved["time_s"]) == samples
-    t = np.concatenate([r.time_s, unsaved["time_s"]])
-    np.testing.assert_array_equal(t, np.arange(samples) / 1000.0)
-    assert np.all(np.isfinite(unsaved["wheel_angle_rad"]))
+    run = _runner(short_protocol, break_disk)
+    with on_fresh_rigs(devices, rig_config, tmp_path, run) as (result, rig):
+        state, (end,), emitted, writer, info, path, loop = result
+        assert end.status == "aborted" and "No space left on device" in end.reason
+        assert writer.failure is not None
+        _motor_off(rig)
+        assert loop.trial_stats()["samples"] == emitted + 50  # nothing after the failing block
+        (r,) = SessionFile(path).records()  # readable
+        assert r.status == "aborted" and "No space left on device" in r.abort_reason
+        # every sample written before the failure (the writer writes every 0.5 s)
+        assert r.n_samples >= info["written"] >= 1000
+        assert r.n_samples <= emitted
+        # The samples the file did not take (the buffer and the failing block) are in the
+        # unsaved-samples file next to it, named in the reason: together, every sample the loop
+        # took, contiguous, with the values the loop gave.
+        samples = loop.trial_stats()["samples"]
+        assert writer.unsaved_file == unsaved_path(path, end.key)
+        assert str(writer.unsaved_file) in end.reason
+        first, unsaved = load_unsaved(writer.unsaved_file)
+        assert first == r.n_samples and first + len(unsaved["time_s"]) == samples
+        t = np.concatenate([r.time_s, unsaved["time_s"]])
+        np.testing.assert_array_equal(t, np.arange(samples) / 1000.0)
+        assert np.all(np.isfinite(unsaved["wheel_angle_rad"]))
 
 
-def test_session_file_removed_mid_trial(devices, short_protocol, tmp_path):
-    loop = devices.device_loop()
-    path = tmp_path / "S02.h5"
-    state, (end,), emitted, writer, _ = _session(
-        loop, short_protocol, path, lambda w: path.unlink()
-    )
-    assert end.status == "aborted" and "removed or replaced" in end.reason
-    assert not path.exists()
-    _motor_off(devices)
-    assert loop.trial_stats()["samples"] == emitted + 50  # stopped at the refused block
+def test_session_file_removed_mid_trial(devices, rig_config, short_protocol, tmp_path):
+    run = _runner(short_protocol, lambda _w, path: path.unlink())
+    with on_fresh_rigs(devices, rig_config, tmp_path, run) as (result, rig):
+        state, (end,), emitted, writer, _, path, loop = result
+        assert end.status == "aborted" and "removed or replaced" in end.reason
+        assert not path.exists()
+        _motor_off(rig)
+        assert loop.trial_stats()["samples"] == emitted + 50  # stopped at the refused block
 
 
 def test_writer_failure_stops_the_loop_process(lenient_rig, short_protocol, tmp_path):
