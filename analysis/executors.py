@@ -22,10 +22,12 @@ the task gets it back with :func:`shared_value`.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import os
 import pickle
+import time
 import uuid
 import weakref
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -133,6 +135,32 @@ def sharing_pool(jobs: int, value: object) -> tuple[cf.ProcessPoolExecutor, Shar
         max_workers=jobs, initializer=_install, initargs=(handle.key, value)
     )
     return pool, handle
+
+
+def pool_cpu_clock(pool: cf.Executor | None) -> Callable[[], float] | None:
+    """A clock of CPU seconds: this process's plus those of ``pool``'s worker processes
+    (a ``ProcessPoolExecutor``), never decreasing (a worker that has ended keeps what it
+    used). None where the workers' CPU time cannot be read (no ``/proc``: not Linux).
+
+    A time limit on this clock does not depend on the machine's load or the number of
+    workers, as one on ``time.process_time`` in a single process does not."""
+    if pool is None or not hasattr(pool, "_processes") or not os.path.exists("/proc/self/stat"):
+        return None
+    tick = os.sysconf("SC_CLK_TCK")
+    used: dict[int, float] = {}
+
+    def clock() -> float:
+        for pid in list(getattr(pool, "_processes", None) or {}):
+            try:
+                with open(f"/proc/{pid}/stat", "rb") as f:
+                    # utime and stime: fields 14 and 15, after the parenthesised name.
+                    fields = f.read().rsplit(b")", 1)[1].split()
+                used[pid] = (int(fields[11]) + int(fields[12])) / tick
+            except (OSError, IndexError, ValueError):
+                pass  # ended: its last reading stays
+        return time.process_time() + sum(used.values())
+
+    return clock
 
 
 def shared_value(handle: object) -> Any:

@@ -158,6 +158,13 @@ def _cmd_diagnose(a: argparse.Namespace) -> int:
     from steerlab.analysis.diagnosis import run_diagnosis
     from steerlab.analysis.executors import executor_for
 
+    if a.jobs is None:
+        import os
+
+        # The candidate stage's time limit counts the workers' CPU seconds: the verdict does
+        # not depend on the number of jobs, only the wait does.
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+        a.jobs = min(cores or os.cpu_count() or 1, 4)
     with executor_for(a.scheduler, a.jobs) as ex:
         result = run_diagnosis(
             a.dir,
@@ -304,8 +311,8 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("diagnose", help="find what the simulation gets wrong on measured data")
     d.add_argument("dir")
     d.add_argument("--out", required=True)
-    d.add_argument("--jobs", type=int, default=1, help="worker processes for the candidates' "
-                   "fits (default 1)")  # fmt: skip
+    d.add_argument("--jobs", type=int, default=None, help="worker processes for the "
+                   "candidates' fits (default: cores, at most 4)")  # fmt: skip
     d.add_argument("--scheduler", help=SCHEDULER_HELP)
     d.add_argument("--model", help="model.toml of an earlier diagnosis: its mechanisms become "
                    "the baseline")  # fmt: skip

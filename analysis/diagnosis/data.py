@@ -24,6 +24,7 @@ import json
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
+from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -125,6 +126,15 @@ class TrialData:
     I_i_sem: float | None = None
     inertia_fixed: bool = False
     _projector: Callable[[np.ndarray], np.ndarray] | None = field(default=None, repr=False)
+    _grip_stats: tuple[float, float] | None = field(default=None, repr=False)
+
+    @property
+    def grip_stats(self) -> tuple[float, float]:
+        """Mean and standard deviation (N) of the grip force in the analysed segment."""
+        if self._grip_stats is None:
+            g = self.grip[self.start : self.stop]
+            self._grip_stats = (float(np.mean(g)), float(np.std(g)))
+        return self._grip_stats
 
     def __getstate__(self) -> dict:
         # The cached projector is a closure: rebuilt on demand in worker processes.
@@ -157,8 +167,18 @@ def channel_spectra(
     nxt = x[stop] if stop < len(x) else 2 * seg[-1] - seg[-2]
     raw = np.fft.rfft(seg)[bins] * (2.0 / n)
     # DFT of the ramp Δ·m/n at bin k: −Δ / (1 − e^{−j2πk/n}).
-    ramp = -(nxt - seg[0]) / (1.0 - np.exp(-2j * np.pi * bins / n))
+    ramp = -(nxt - seg[0]) * _ramp_dft(n, np.asarray(bins, dtype=np.int64).tobytes())
     return raw - ramp * (2.0 / n), raw
+
+
+@lru_cache(maxsize=256)
+def _ramp_dft(n: int, bins: bytes) -> np.ndarray:
+    """1 / (1 − e^{−j2πk/n}) at the bins (``bins``: the int array's bytes, as a cache key):
+    the same for every simulation of a trial."""
+    k = np.frombuffer(bins, dtype=np.int64)
+    out = 1.0 / (1.0 - np.exp(-2j * np.pi * k / n))
+    out.flags.writeable = False
+    return out
 
 
 def measurement_spectra(
@@ -183,26 +203,25 @@ def transient_projector(trial: TrialData) -> Callable[[np.ndarray], np.ndarray]:
     """
     if trial._projector is not None:
         return trial._projector
-    # One (n_bins, TRANSIENT_ORDER) matrix of every band's orthonormal polynomial basis, and
-    # the band boundaries: the projection is then a few whole-array operations instead of a
-    # Python loop over the bands (it runs once per simulation in the fits).
+    # Every band's orthonormal polynomial basis as the columns of one real (n_bins,
+    # bands × TRANSIENT_ORDER) matrix, zero outside its band: the projection is then two
+    # small matrix products on the real and imaginary parts (it runs once per simulation in
+    # the fits; this way takes a third of the time of a sum per band).
     n = len(trial.bins)
-    Q_all = np.zeros((n, TRANSIENT_ORDER))
-    starts = []
+    basis = np.zeros((n, trial.n_bands * TRANSIENT_ORDER))
     for b in range(trial.n_bands):
         idx = np.flatnonzero(trial.band == b)
         x = (trial.bins[idx] - trial.bins[idx].mean()) / max(1.0, np.ptp(trial.bins[idx]) / 2)
         P = np.stack([x**j for j in range(TRANSIENT_ORDER)], axis=1)
         Q, _ = np.linalg.qr(P)  # (len(idx), min(len(idx), TRANSIENT_ORDER))
-        Q_all[idx, : Q.shape[1]] = Q
-        starts.append(idx[0])
-    first = np.array(starts)
-    band = trial.band
+        basis[idx, b * TRANSIENT_ORDER : b * TRANSIENT_ORDER + Q.shape[1]] = Q
+    basis_t = np.ascontiguousarray(basis.T)
 
     def project(v: np.ndarray) -> np.ndarray:
         v = np.asarray(v, dtype=complex)
-        coef = np.add.reduceat(v[..., :, None] * Q_all, first, axis=-2)  # (..., bands, order)
-        return v - np.einsum("...bj,bj->...b", coef[..., band, :], Q_all)
+        parts = np.stack([v.real, v.imag])  # (2, ..., n_bins)
+        parts = parts - (parts @ basis) @ basis_t
+        return parts[0] + 1j * parts[1]
 
     trial._projector = project
     return project

@@ -20,6 +20,9 @@ Greedy forward selection (:func:`select`)
       is the drop of B's −2 log L against the current model treated the same way, summed
       over the folds. A mechanism fitted to noise does not carry over and loses there.
       Only a candidate that passes on ΔBIC is tried held out: the others cannot be retained.
+      The one with the largest in-sample gain is tried first, and one whose in-sample gain is
+      below a quarter of that one's held-out gain (if it can be retained) is not tried either
+      (:func:`_held_out_stage`).
 
     A candidate is retained when its ΔBIC < −``MIN_DBIC``, its held-out gain
     > ``MIN_HELD_OUT``, and its parameters stand out from zero by more than ``MIN_ROBUST_Z``
@@ -27,7 +30,9 @@ Greedy forward selection (:func:`select`)
     rests on a few trials, which the likelihood's noise model would over-count); of several,
     the one with the largest held-out gain. It joins the model
     and the next step starts; the selection stops when no candidate passes, or after
-    ``MAX_MECHANISMS``; candidates that improved nothing at the first step are not re-tried.
+    ``MAX_MECHANISMS``; candidates that improved nothing at the first step are not re-tried,
+    and a family whose first step's best form improves nothing at a later step is not
+    screened in its other forms.
     Without two repetitions there is no held-out check, and the ΔBIC
     threshold is ``MIN_DBIC_NO_HELD_OUT`` instead.
 
@@ -64,7 +69,7 @@ from steerlab.analysis.diagnosis.simulate import (
     reconstruct_remnant,
     simulated_spectra,
 )
-from steerlab.analysis.executors import share, shared_value, sharing_pool
+from steerlab.analysis.executors import pool_cpu_clock, share, shared_value, sharing_pool
 from steerlab.hardware.safety import SafetyLimits
 from steerlab.hardware.sim.mechanisms import Mechanisms
 from steerlab.hardware.sim.physiology import NOMINAL, ArmParams
@@ -88,11 +93,17 @@ FORM_CONSISTENT_M2LL = 3.84
 # Candidates are re-evaluated at later steps only if they improved −2 log L by more than this
 # at the first step (χ²₁ above 6: p ≈ 0.014): masking that strong is not expected.
 RETRY_MIN_DELTA_M2LL = 6.0
+# A candidate whose in-sample gain (−2 log L) times this is below the held-out gain of
+# another of its step, which can be retained, is not tried on held-out data: held-out gains
+# were at most 1.8 × the in-sample ones (_held_out_stage).
+HELD_OUT_SKIP_RATIO = 4.0
 K_REMNANT_SELECT = 1  # remnant realisations (± pairs) while screening candidates …
 K_REMNANT_FINAL = 8  # … and for the retained model's parameters (see simulate.py)
-# Time limit of the candidate stage (s): CPU seconds of the diagnosing process with one job,
-# wall-clock seconds with several (the workers' CPU time is not visible while they run). CPU
-# time, because on a shared machine wall time measures the other users: on the development
+# Time limit of the candidate stage (s): CPU seconds of the diagnosing process and of its own
+# worker processes (``--jobs``; read from /proc, see analysis.executors.pool_cpu_clock),
+# wall-clock seconds on a Dask scheduler or where /proc is missing. CPU time, because on a
+# shared machine wall time measures the other users, and the verdict should not depend on
+# the number of jobs: on the development
 # machine a run was stopped for 10 minutes by a colleague's real-time measurement. Long trials
 # or a misbehaving candidate could make the stage run away (issue 18: "no answer within
 # 300 s"); at the limit the candidates not yet evaluated are left out, and the result says so.
@@ -361,6 +372,13 @@ class CandidateResult:
     held_out_trial_cost: dict[str, float] = field(default_factory=dict, repr=False)
     # Candidates of the same step that explain the data as well as this one (see confusable).
     equally_good: list[dict] = field(default_factory=list)
+    # Not tried on held-out data: the held-out gain of another candidate of its step that it
+    # could not reach (see _held_out_stage); None when tried, or failed on BIC.
+    held_out_skipped: float | None = None
+    # A later step's family fitted only in its first step's form (see evaluate_candidate).
+    only_first_form: bool = False
+    # Passed on BIC, but the time limit came before its held-out check.
+    held_out_undone: bool = False
 
     def to_dict(self) -> dict:
         return {
@@ -377,6 +395,8 @@ class CandidateResult:
             "robust_z": self.robust_z,
             "passed": self.passed,
             "reason": self.reason,
+            "held_out_not_tried_below": self.held_out_skipped,
+            "only_first_step_form": self.only_first_form,
             "equally_good": self.equally_good,
             "iterations": self.fit.iterations,
             "converged": self.fit.converged,
@@ -449,49 +469,89 @@ def _consistent(form_m2ll: dict[str, float]) -> list[str]:
     return [f for f in ranked if form_m2ll[f] - best <= FORM_CONSISTENT_M2LL]
 
 
-def evaluate_candidate(setup: Setup, current: Current, name: str, step: int) -> CandidateResult:
+def evaluate_candidate(
+    setup: Setup,
+    current: Current,
+    name: str,
+    step: int,
+    held_out: bool = True,
+    first_form: str | None = None,
+) -> CandidateResult:
     """The family ``name`` added to the current model: each of its forms fitted on all trials,
     the best by −2 log L judged (ΔBIC, held-out folds) as the family's candidate. A family the
-    baseline already has (a model file's) is re-fitted in the form it has."""
+    baseline already has (a model file's) is re-fitted in the form it has. ``held_out``: also
+    its held-out folds if it passes on ΔBIC (else :func:`add_held_out` does them later).
+    ``first_form``: the form that fitted best at the first step (later steps): screened
+    first, and when it improves nothing (less than :data:`RETRY_MIN_DELTA_M2LL`) the other
+    forms are not screened."""
     family = candidate(name)
     forms = (
         (family.form_of(current.spec.base),) if family.is_on(current.spec.base) else family.forms
     )
+    only_first = False
     if len(forms) == 1:
         fit, form, form_m2ll = _fit_form(setup, current, family.with_form(forms[0])), forms[0], {}
     else:
         # Each form gets a few iterations and the best of them the full fit: fitting every
         # form fully would cost as much as that many candidates.
-        fits = [
-            (_fit_form(setup, current, family.with_form(f), FORM_SCREEN_ITER), f) for f in forms
-        ]
+        order = sorted(forms, key=lambda f: f.name != first_form)
+        fits = [(_fit_form(setup, current, family.with_form(order[0]), FORM_SCREEN_ITER), order[0])]
+        # At a later step a family whose first step's best form now improves nothing is not
+        # screened in its others: at the first step, against a baseline far from the data,
+        # every family "improved", and its forms were most of a later step's time.
+        only_first = (
+            order[0].name == first_form
+            and current.fit.m2ll - fits[0][0].m2ll < RETRY_MIN_DELTA_M2LL
+        )
+        if not only_first:
+            fits += [
+                (_fit_form(setup, current, family.with_form(f), FORM_SCREEN_ITER), f)
+                for f in order[1:]
+            ]
         form_m2ll = {f.name: r.m2ll for r, f in fits}
         screened, form = min(fits, key=lambda pair: pair[0].m2ll)
         fit = fit_model(setup.trials, screened.spec, setup.noise, screened.arms, x0=screened.x)
         form_m2ll[form.name] = fit.m2ll
-    spec = fit.spec
     d_m2ll = current.fit.m2ll - fit.m2ll
     # The family's prior is shared among its K forms (as drift's): 2 ln K on the −2 log L
     # scale, the price of choosing the best of K shapes on the same data.
     d_bic = fit.bic - current.fit.bic + 2.0 * math.log(len(forms))
-    gain = None
-    folds: list[float] = []
-    xs: list[np.ndarray] = []
-    costs: list[float] = []
-    per_trial: dict[str, float] = {}
-    # The held-out folds only decide between candidates that pass on BIC: one that does not
-    # cannot be retained, and its folds (half the stage's time) would change nothing.
-    if setup.folds and d_bic < -MIN_DBIC:
-        new = spec.start()[current.spec.n_free :]
-        starts = [np.concatenate([x, new]) for x in current.fold_x]
-        xs, costs, per_trial = _fold_eval(setup, spec, current.fit.arms, starts)
-        folds = [c0 - c1 for c0, c1 in zip(current.fold_test_cost, costs, strict=True)]
-        gain = float(sum(folds))
-    return CandidateResult(
-        name, step, fit, float(d_m2ll), float(d_bic), gain, folds, fold_x=xs, fold_cost=costs,
-        form=form.name, form_m2ll=form_m2ll, forms_consistent=_consistent(form_m2ll),
-        held_out_trial_cost=per_trial,
+    r = CandidateResult(
+        name, step, fit, float(d_m2ll), float(d_bic), None, form=form.name,
+        form_m2ll=form_m2ll, forms_consistent=[] if only_first else _consistent(form_m2ll),
+        only_first_form=only_first,
     )  # fmt: skip
+    if held_out and needs_held_out(setup, r):
+        add_held_out(setup, current, r)
+    return r
+
+
+def needs_held_out(setup: Setup, r: CandidateResult) -> bool:
+    """The held-out folds only decide between candidates that pass on BIC: one that does not
+    cannot be retained, and its folds (half the stage's time) would change nothing."""
+    return bool(setup.folds) and r.delta_bic < -MIN_DBIC
+
+
+def held_out_folds(
+    setup: Setup, current: Current, r: CandidateResult
+) -> tuple[list[np.ndarray], list[float], dict[str, float]]:
+    """:func:`_fold_eval` of the candidate ``r`` fitted at this step (as a worker runs it)."""
+    new = r.fit.spec.start()[current.spec.n_free :]
+    starts = [np.concatenate([x, new]) for x in current.fold_x]
+    return _fold_eval(setup, r.fit.spec, current.fit.arms, starts)
+
+
+def add_held_out(
+    setup: Setup,
+    current: Current,
+    r: CandidateResult,
+    folds: tuple[list[np.ndarray], list[float], dict[str, float]] | None = None,
+) -> None:
+    """Fill in ``r``'s held-out gain from its folds (``folds``: computed elsewhere)."""
+    xs, costs, per_trial = held_out_folds(setup, current, r) if folds is None else folds
+    r.held_out_folds = [c0 - c1 for c0, c1 in zip(current.fold_test_cost, costs, strict=True)]
+    r.held_out_gain = float(sum(r.held_out_folds))
+    r.fold_x, r.fold_cost, r.held_out_trial_cost = xs, costs, per_trial
 
 
 def robust_z(r: CandidateResult) -> float:
@@ -576,6 +636,14 @@ def judge(results: Sequence[CandidateResult], held_out: bool) -> None:
                     "better on BIC and held out, but its parameter does not stand out from "
                     f"the trial-to-trial scatter (robust z = {r.robust_z:.1f})"
                 )
+            elif ok_bic and r.held_out_undone:
+                r.reason = "better on BIC, but the time limit came before its held-out check"
+            elif ok_bic and r.held_out_skipped is not None:
+                r.reason = (
+                    f"better on BIC, but its gain (−2 log L {r.delta_m2ll:.4g}) is far below "
+                    f"another candidate's held-out gain ({r.held_out_skipped:.4g}): not tried "
+                    "on held-out data"
+                )
             elif ok_bic:
                 r.reason = "better on BIC, but does not predict the other repetition"
             elif r.held_out_gain is None:
@@ -604,11 +672,18 @@ def _limit_threads() -> AbstractContextManager:
         return nullcontext()
 
 
-def _worker_eval(setup: object, current: Current, name: str, step: int) -> CandidateResult:
+def _worker_eval(
+    setup: object,
+    current: Current,
+    name: str,
+    step: int,
+    held_out: bool = True,
+    first_form: str | None = None,
+) -> CandidateResult:
     """One candidate in a worker; ``setup``: the handle of :mod:`analysis.executors` that
     brings the set-up once per worker (a Dask worker has no initializer to install it)."""
     with _limit_threads():
-        return evaluate_candidate(shared_value(setup), current, name, step)
+        return evaluate_candidate(shared_value(setup), current, name, step, held_out, first_form)
 
 
 @dataclass
@@ -642,16 +717,6 @@ def select(
     pool = [c.name for c in CANDIDATES] if names is None else list(names)
     if time_limit_s is None:
         time_limit_s = CANDIDATE_TIME_LIMIT_S
-    clock = time.process_time if jobs <= 1 and executor is None else time.monotonic
-    deadline = clock() + time_limit_s
-    undone: list[str] = []
-
-    def late() -> bool:
-        return clock() > deadline
-
-    current = make_current(setup, setup.spec(), setup.base)
-    steps: list[list[CandidateResult]] = []
-    retained: list[CandidateResult] = []
     own_pool = executor is None and jobs > 1
     shared: object = None
     if own_pool:
@@ -659,6 +724,37 @@ def select(
     elif executor is not None:
         shared = share(executor, setup)
     try:
+        # CPU seconds: this process's, and our own workers' where they can be read (then the
+        # limit does not come sooner on a loaded machine or with more jobs); else (an
+        # executor we were given) wall-clock seconds.
+        clock: Callable[[], float] = time.process_time
+        per_wall = 1  # CPU seconds the clock can advance per wall second
+        if own_pool:
+            clock = pool_cpu_clock(executor) or time.monotonic
+            per_wall = jobs + 1 if clock is not time.monotonic else 1
+        elif executor is not None:
+            clock = time.monotonic
+        deadline = clock() + time_limit_s
+        undone: list[str] = []
+
+        def late() -> bool:
+            return clock() > deadline
+
+        def wait(futs: dict) -> tuple[set, set]:
+            """cf.wait for ``futs`` until done or the time limit (done, pending)."""
+            done: set = set()
+            pending = set(futs)
+            while pending:
+                left = deadline - clock() if math.isfinite(deadline) else None
+                if left is not None and left <= 0:
+                    break
+                d, pending = cf.wait(pending, None if left is None else max(left / per_wall, 0.05))
+                done |= d
+            return done, pending
+
+        current = make_current(setup, setup.spec(), setup.base)
+        steps: list[list[CandidateResult]] = []
+        retained: list[CandidateResult] = []
         for step in range(1, MAX_MECHANISMS + 1):
             remaining = [n for n in pool if n not in current.spec.names]
             if steps:
@@ -669,6 +765,7 @@ def select(
                     n for n in remaining
                     if n not in first or first[n].delta_m2ll > RETRY_MIN_DELTA_M2LL
                 ]  # fmt: skip
+            first_forms = {r.name: r.form for r in steps[0]} if steps else {}
             if not remaining:
                 break
             if late():
@@ -679,10 +776,12 @@ def select(
             results: list[CandidateResult] = []
             if executor is not None:
                 futs = {
-                    executor.submit(_worker_eval, shared, current, n, step): n for n in remaining
+                    executor.submit(
+                        _worker_eval, shared, current, n, step, False, first_forms.get(n)
+                    ): n
+                    for n in remaining
                 }
-                wait = max(deadline - clock(), 0.0) if math.isfinite(deadline) else None
-                done, pending = cf.wait(futs, timeout=wait)
+                done, pending = wait(futs)
                 results = [f.result() for f in futs if f in done]
                 if pending:
                     # Not started: cancelled; already running on an executor we were given:
@@ -701,7 +800,18 @@ def select(
                         break
                     if progress:
                         progress(f"step {step}: {n}")
-                    results.append(evaluate_candidate(setup, current, n, step))
+                    results.append(
+                        evaluate_candidate(setup, current, n, step, False, first_forms.get(n))
+                    )
+            if undone:
+                # Cut before their held-out stage: say so rather than "does not predict".
+                for r in results:
+                    r.held_out_undone = needs_held_out(setup, r)
+            else:
+                executor = _held_out_stage(
+                    setup, current, results, step, executor, shared, own_pool, late, wait,
+                    undone,
+                )  # fmt: skip
             judge(results, held_out=bool(setup.folds))
             steps.append(results)
             passing = [r for r in results if r.passed]
@@ -744,11 +854,100 @@ def select(
     )
 
 
+def _held_out_stage(
+    setup: Setup,
+    current: Current,
+    results: list[CandidateResult],
+    step: int,
+    executor: cf.Executor | None,
+    shared: object,
+    own_pool: bool,
+    late: Callable[[], bool],
+    wait: Callable[[dict], tuple[set, set]],
+    undone: list[str],
+) -> cf.Executor | None:
+    """The held-out folds of the step's candidates that pass on BIC and could still be
+    chosen; returns the executor (None once abandoned at the time limit).
+
+    The candidate with the largest in-sample gain is tried first. The candidate chosen is the
+    one with the largest held-out gain, and a candidate's held-out gain was at most 1.8 × its
+    in-sample gain on the independent world's studies (docs/diagnosis.md, "Speed"): one whose
+    in-sample gain is below 1/:data:`HELD_OUT_SKIP_RATIO` of that first candidate's held-out
+    gain (when it can be retained) is not tried on held-out data, and its reason says so. On
+    a baseline far from the data every candidate passes on BIC, and these folds were two
+    thirds of the step's time. The others are then tried together (with any number of jobs
+    the same ones: the rule looks at the first candidate only).
+    """
+    todo = sorted((r for r in results if needs_held_out(setup, r)), key=lambda r: -r.delta_m2ll)
+    best = -math.inf
+
+    def cut(left: list[CandidateResult]) -> None:
+        for r in left:
+            r.held_out_undone = True
+        names = ", ".join(r.name for r in left)
+        undone.append(f"step {step}: held-out check of {names} not done")
+
+    def run(batch: list[CandidateResult]) -> bool:
+        """The batch's folds; False when the time limit left some undone."""
+        nonlocal executor
+        if executor is None:
+            for i, r in enumerate(batch):
+                if late():
+                    cut(batch[i:])
+                    return False
+                add_held_out(setup, current, r)
+            return True
+        futs = {executor.submit(_worker_folds, shared, current, r): r for r in batch}
+        done, pending = wait(futs)
+        for f, r in futs.items():
+            if f in done:
+                add_held_out(setup, current, r, f.result())
+        if pending:
+            for f in pending:
+                f.cancel()
+            if own_pool:
+                _abandon(executor)
+            executor = None
+            cut([futs[f] for f in futs if f in pending])
+            return False
+        return True
+
+    if not todo:
+        return executor
+    if not run(todo[:1]):
+        if todo[1:]:
+            cut(todo[1:])
+        return executor
+    first = todo[0]
+    first.robust_z = robust_z(first)
+    if first.held_out_gain is not None and first.held_out_gain > MIN_HELD_OUT:
+        if first.robust_z > MIN_ROBUST_Z:
+            best = first.held_out_gain
+    rest = []
+    for r in todo[1:]:
+        if HELD_OUT_SKIP_RATIO * r.delta_m2ll < best:
+            r.held_out_skipped = best
+        else:
+            rest.append(r)
+    if rest:
+        run(rest)
+    return executor
+
+
+def _worker_folds(
+    setup: object, current: Current, r: CandidateResult
+) -> tuple[list[np.ndarray], list[float], dict[str, float]]:
+    with _limit_threads():
+        return held_out_folds(shared_value(setup), current, r)
+
+
 def _abandon(executor: cf.Executor) -> None:
     """Stop a pool whose work is no longer wanted: queued work is cancelled and the workers
     still busy are terminated (shutdown alone would wait for them)."""
+    # Read before shutdown: it sets the pool's process table to None.
+    procs = list((getattr(executor, "_processes", None) or {}).values())
     executor.shutdown(wait=False, cancel_futures=True)
-    for proc in list(getattr(executor, "_processes", {}).values()):
+    for proc in procs:
         proc.terminate()
 
 

@@ -93,8 +93,15 @@ def fig_candidates(result) -> Figure:
     ax2.set_xscale("symlog", linthresh=10)
     ax2.set_xlim(min(ho.min() * 2, -30), max(ho.max() * 2, 30))
     for yi in y[~tried]:
-        # Not tried because it failed on BIC, or because the study has no held-out data.
-        why = "not tried (ΔBIC)" if "not tried" in cand[names[yi]].get("reason", "") else "none"
+        # Not tried because it failed on BIC, or its gain was far below another candidate's
+        # held-out gain; or the study has no held-out data.
+        c = cand[names[yi]]
+        if c.get("held_out_not_tried_below") is not None:
+            why = "not tried (gain ≪ another's)"
+        elif "not tried" in c.get("reason", ""):
+            why = "not tried (ΔBIC)"
+        else:
+            why = "none"
         ax2.text(0, yi, f" {why}", va="center", ha="left", fontsize=7, color="#777777")
     ax2.set_yticks(y, [""] * len(names))
     ax2.invert_yaxis()

@@ -163,6 +163,8 @@ class DiagnosisResult:
 
 def form_sentence(c: dict) -> str:
     """A candidate's best form, and the others as consistent with the data."""
+    if c.get("only_first_step_form"):
+        return c["form"] + " (the form of the first step; the others not screened at this step)"
     also = [f for f in c.get("forms_consistent_with_data", []) if f != c["form"]]
     return c["form"] + (f" (as consistent with the data: {'; '.join(also)})" if also else "")
 
@@ -290,8 +292,8 @@ def _run(
     timing["candidates"] = time.perf_counter() - t1
     for what in sel.undone:
         prep.limits.append(
-            f"time limit of the candidate stage ({engine.CANDIDATE_TIME_LIMIT_S:g} s; CPU "
-            f"time with one job) reached: {what}"
+            f"time limit of the candidate stage ({engine.CANDIDATE_TIME_LIMIT_S:g} s of CPU "
+            f"time, workers included; wall time on a scheduler) reached: {what}"
         )
 
     stages.next("drift")
@@ -485,6 +487,7 @@ def _candidate_table(sel: Selection, drift: DriftResult | None) -> dict[str, dic
         out[r.name]["form"] = r.form
         out[r.name]["forms_minus2loglik"] = r.form_m2ll
         out[r.name]["forms_consistent_with_data"] = r.forms_consistent
+        out[r.name]["only_first_step_form"] = r.only_first_form
         # The retained model's parameters (all its data; nonlinear ones refined at the end).
         out[r.name]["parameters"] = [p for p in sel.final.parameters() if p["mechanism"] == r.name]
     for d in out.values():

@@ -70,8 +70,8 @@ class ReplayBlocks:
 
 def behaviour_for(trial: TrialData, arm: ArmParams) -> ConditionBehaviour:
     # The grip-scheduled stiffness is relative to the grip's mean: the trial's own mean.
-    g = trial.grip[trial.start : trial.stop]
-    return ConditionBehaviour(arm, float(np.mean(g)), float(np.std(g)), 0.0)
+    mean, sd = trial.grip_stats
+    return ConditionBehaviour(arm, mean, sd, 0.0)
 
 
 def trial_world(trial: TrialData, mechanisms: Mechanisms) -> World:

@@ -4,11 +4,19 @@ process once and is found there by later tasks."""
 from __future__ import annotations
 
 import concurrent.futures as cf
+import os
+import time
 
 import numpy as np
 import pytest
 
-from steerlab.analysis.executors import Shared, share, shared_value, sharing_pool
+from steerlab.analysis.executors import (
+    Shared,
+    pool_cpu_clock,
+    share,
+    shared_value,
+    sharing_pool,
+)
 
 VALUE = {"spectra": np.arange(1000.0).reshape(10, 100), "name": "set-up"}
 
@@ -49,3 +57,29 @@ def test_on_dask_the_task_receives_the_value_itself():
         handle = share(ex, VALUE)
         assert not isinstance(handle, Shared)  # a scattered Dask future, not the pickle
         assert _same(ex.submit(shared_value, handle).result(), VALUE)
+
+
+def _burn(seconds: float) -> float:
+    t0 = time.process_time()
+    while time.process_time() - t0 < seconds:
+        pass
+    return seconds
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="needs Linux's /proc")
+def test_pool_cpu_clock_counts_the_workers_cpu_seconds():
+    # The diagnosis' time limit with several jobs: the workers burn 0.6 CPU s each while this
+    # process waits, so its own process_time hardly moves and wall time depends on the load.
+    with cf.ProcessPoolExecutor(2) as pool:
+        clock = pool_cpu_clock(pool)
+        assert clock is not None
+        own0, c0 = time.process_time(), clock()
+        assert list(pool.map(_burn, [0.6, 0.6])) == [0.6, 0.6]
+        used = clock() - c0
+        own = time.process_time() - own0
+        assert own < 0.3
+        assert 1.1 < used - own < 1.6  # the workers' 1.2 s, and a little start-up
+        # Never decreasing, also once the workers have ended.
+        before = clock()
+    assert clock() >= before
+    assert pool_cpu_clock(None) is None

@@ -36,3 +36,16 @@ def test_a_dask_local_cluster_gives_the_in_process_diagnosis(tmp_path, monkeypat
         assert ex is not None and type(ex).__module__.startswith("distributed")
         on_dask = run_diagnosis(data, None, candidates=CANDIDATES, executor=ex)
     assert _found(on_dask) == _found(here)
+
+
+@pytest.mark.slow
+def test_our_own_pool_of_two_jobs_gives_the_in_process_diagnosis(tmp_path):
+    # steerlab diagnose's default: as many jobs as cores. With the default time limit (CPU
+    # seconds, the workers' included), the in-process run of the same study: number for
+    # number, the held-out stage's choices included (a lag study: several candidates pass on
+    # BIC at the first step).
+    data = make_study(tmp_path / "s", "actuator_lag", 0.005, seed=14)
+    here = run_diagnosis(data, None, candidates=CANDIDATES)
+    assert here.cause == "actuator_lag", here.summary()
+    pooled = run_diagnosis(data, None, candidates=CANDIDATES, jobs=2)
+    assert _found(pooled) == _found(here)

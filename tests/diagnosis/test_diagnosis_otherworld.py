@@ -74,9 +74,11 @@ def test_with_steerlabs_limit_imposed_the_same_null_study_is_a_false_alarm(tmp_p
     assert not any("beyond the limits" in n for n in res.notes)
 
 
-def test_a_stage_out_of_time_says_what_it_left_undone(tmp_path, monkeypatch):
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_a_stage_out_of_time_says_what_it_left_undone(tmp_path, monkeypatch, jobs):
+    # With two jobs the limit counts the workers' CPU time too (the same verdict and limits).
     monkeypatch.setattr(engine, "CANDIDATE_TIME_LIMIT_S", 0.0)
-    res = run_diagnosis(otherworld_study(tmp_path, [], seed=3), None)
+    res = run_diagnosis(otherworld_study(tmp_path, [], seed=3), None, jobs=jobs)
     assert res.cause == "none"
     undone = [lim for lim in res.limits if "time limit of the candidate stage" in lim]
     assert len(undone) == 1 and "reflex_delay" in undone[0] and "not tried" in undone[0]
