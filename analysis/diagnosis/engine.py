@@ -874,8 +874,8 @@ def _held_out_stage(
     in-sample gain on the independent world's studies (docs/diagnosis.md, "Speed"): one whose
     in-sample gain is below 1/:data:`HELD_OUT_SKIP_RATIO` of that first candidate's held-out
     gain (when it can be retained) is not tried on held-out data, and its reason says so. On
-    a baseline far from the data every candidate passes on BIC, and these folds were two
-    thirds of the step's time. The others are then tried together (with any number of jobs
+    a baseline far from the data every candidate passes on BIC, and these folds were more
+    than half of the step's time. The others are then tried together (with any number of jobs
     the same ones: the rule looks at the first candidate only).
     """
     todo = sorted((r for r in results if needs_held_out(setup, r)), key=lambda r: -r.delta_m2ll)
