@@ -474,16 +474,15 @@ def evaluate_candidate(
     current: Current,
     name: str,
     step: int,
-    held_out: bool = True,
     first_form: str | None = None,
 ) -> CandidateResult:
     """The family ``name`` added to the current model: each of its forms fitted on all trials,
-    the best by −2 log L judged (ΔBIC, held-out folds) as the family's candidate. A family the
-    baseline already has (a model file's) is re-fitted in the form it has. ``held_out``: also
-    its held-out folds if it passes on ΔBIC (else :func:`add_held_out` does them later).
-    ``first_form``: the form that fitted best at the first step (later steps): screened
-    first, and when it improves nothing (less than :data:`RETRY_MIN_DELTA_M2LL`) the other
-    forms are not screened."""
+    the best by −2 log L as the family's candidate, with its ΔBIC (its held-out folds come
+    later, from :func:`add_held_out`, for the candidates that need them). A family the
+    baseline already has (a model file's) is re-fitted in the form it has. ``first_form``:
+    the form that fitted best at the first step (later steps): screened first, and when it
+    improves nothing (less than :data:`RETRY_MIN_DELTA_M2LL`) the other forms are not
+    screened."""
     family = candidate(name)
     forms = (
         (family.form_of(current.spec.base),) if family.is_on(current.spec.base) else family.forms
@@ -521,8 +520,6 @@ def evaluate_candidate(
         form_m2ll=form_m2ll, forms_consistent=[] if only_first else _consistent(form_m2ll),
         only_first_form=only_first,
     )  # fmt: skip
-    if held_out and needs_held_out(setup, r):
-        add_held_out(setup, current, r)
     return r
 
 
@@ -677,13 +674,12 @@ def _worker_eval(
     current: Current,
     name: str,
     step: int,
-    held_out: bool = True,
     first_form: str | None = None,
 ) -> CandidateResult:
     """One candidate in a worker; ``setup``: the handle of :mod:`analysis.executors` that
     brings the set-up once per worker (a Dask worker has no initializer to install it)."""
     with _limit_threads():
-        return evaluate_candidate(shared_value(setup), current, name, step, held_out, first_form)
+        return evaluate_candidate(shared_value(setup), current, name, step, first_form)
 
 
 @dataclass
@@ -776,9 +772,7 @@ def select(
             results: list[CandidateResult] = []
             if executor is not None:
                 futs = {
-                    executor.submit(
-                        _worker_eval, shared, current, n, step, False, first_forms.get(n)
-                    ): n
+                    executor.submit(_worker_eval, shared, current, n, step, first_forms.get(n)): n
                     for n in remaining
                 }
                 done, pending = wait(futs)
@@ -800,9 +794,7 @@ def select(
                         break
                     if progress:
                         progress(f"step {step}: {n}")
-                    results.append(
-                        evaluate_candidate(setup, current, n, step, False, first_forms.get(n))
-                    )
+                    results.append(evaluate_candidate(setup, current, n, step, first_forms.get(n)))
             if undone:
                 # Cut before their held-out stage: say so rather than "does not predict".
                 for r in results:
@@ -920,9 +912,9 @@ def _held_out_stage(
         return executor
     first = todo[0]
     first.robust_z = robust_z(first)
-    if first.held_out_gain is not None and first.held_out_gain > MIN_HELD_OUT:
-        if first.robust_z > MIN_ROBUST_Z:
-            best = first.held_out_gain
+    gain = first.held_out_gain
+    if gain is not None and gain > MIN_HELD_OUT and first.robust_z > MIN_ROBUST_Z:
+        best = gain
     rest = []
     for r in todo[1:]:
         if HELD_OUT_SKIP_RATIO * r.delta_m2ll < best:

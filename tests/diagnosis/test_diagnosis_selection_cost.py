@@ -132,7 +132,7 @@ def _evaluate(monkeypatch, first_form: str | None, first_gain: float) -> list[st
         "reflex_delay", 1e6 - (first_gain if spec.free[0].form.name == (first_form or
         fam.forms[0].name) else 100.0)))  # fmt: skip
     setup = SimpleNamespace(trials=[], noise={}, folds=[])
-    r = engine.evaluate_candidate(setup, current, "reflex_delay", 2, False, first_form)
+    r = engine.evaluate_candidate(setup, current, "reflex_delay", 2, first_form)
     assert r.only_first_form == (len(tried) == 1)
     return tried
 
