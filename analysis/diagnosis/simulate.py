@@ -1,10 +1,13 @@
 """The simulator driven by a measured trial: the measured perturbation torque and grip force.
 
 ``simulate_trial`` runs :class:`hardware.sim.world.World` (the same compiled kernel as
-``steerlab simulate``) at the trial's sample rate on the measured perturbation torque, from the
-trial's first sample, so the start-up transient is the measured one too. Everything random is
-switched off: no remnant (unless one is given), no sensor noise, no quantisation; the model's
-prediction is the deterministic response to the measured perturbation.
+``steerlab simulate``) at the trial's sample rate on the measured perturbation torque.
+Everything random is switched off: no remnant (unless one is given), no sensor noise, no
+quantisation; the model's prediction is the deterministic response to the measured
+perturbation in its periodic steady state, where the perturbation is periodic
+(:mod:`analysis.diagnosis.steady_state`): a linear model's is computed bin by bin there,
+any other model's simulated from that steady state. Elsewhere the world starts from rest at
+the trial's first sample.
 
 The world draws its exogenous signals (remnant, sensor noise, grip force) from a noise-block
 object; :class:`ReplayBlocks` stands in for it and replays measured or given signals instead,
@@ -15,10 +18,11 @@ the world's ``noise`` attribute and the block protocol of ``hardware.sim.world.N
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from steerlab.analysis.diagnosis import steady_state
 from steerlab.analysis.diagnosis.data import TrialData, measurement_spectra
 from steerlab.hardware.sim.mechanisms import Mechanisms
 from steerlab.hardware.sim.physiology import ArmParams, ConditionBehaviour
@@ -91,12 +95,75 @@ def simulate_trial(
     arm: ArmParams,
     mechanisms: Mechanisms,
     remnant: np.ndarray | None = None,
+    start: SteadyStart | None = None,
 ) -> dict[str, np.ndarray]:
-    """Simulated channels for the trial's first ``n_sim`` samples, as the world gives them."""
+    """The simulated wheel angle and driver torque (``wheel_angle_rad``,
+    ``driver_torque_Nm``) for the trial's first ``n_sim`` samples, as the world gives them.
+
+    Where the trial's perturbation is periodic (:func:`steady_state.perturbation`), the world
+    starts where it becomes so, with every state at the periodic steady state of the model's
+    linear part (its dry friction, stiffening, grip coupling and imbalance taken out); the
+    samples before are NaN. Elsewhere, and where that linear part is unstable, it starts
+    from rest at the first sample (:func:`steady_start`). ``start``: :func:`steady_start` of
+    the same trial, arm and mechanisms, computed once for several runs."""
     world = trial_world(trial, mechanisms)
     world.begin_trial(behaviour_for(trial, arm), 0.5, seed=0)
-    world.noise = ReplayBlocks(trial.fs_hz, trial.grip, remnant, block=trial.n_sim)
-    return world.run(trial.tp[: trial.n_sim])
+    start = steady_start(trial, arm, mechanisms) if start is None else start
+    m0 = 0
+    if start.steady is not None:
+        pert, lp, ss = start.steady
+        m0 = pert.periodic_from
+        steady_state.set_initial_state(world, lp, ss, pert)
+    n = trial.n_sim
+    world.noise = ReplayBlocks(
+        trial.fs_hz, trial.grip[m0:n], None if remnant is None else remnant[m0:n], block=n - m0
+    )
+    out = world.run(trial.tp[m0:n])
+    channels = {}
+    for name in ("wheel_angle_rad", "driver_torque_Nm"):
+        x = np.empty(n)
+        x[:m0] = np.nan
+        x[m0:] = out[name]
+        channels[name] = x
+    return channels
+
+
+@dataclass(frozen=True)
+class SteadyStart:
+    """Where a simulation of a trial starts: (perturbation, loop, steady state) of the
+    model's linear part, or None (from rest)."""
+
+    steady: tuple[steady_state.Perturbation, steady_state.Loop, steady_state.SteadyState] | None
+
+
+def steady_start(
+    trial: TrialData, arm: ArmParams, mechanisms: Mechanisms, before: int = 0
+) -> SteadyStart:
+    """From the steady state of the model's linear part, where the trial's perturbation is
+    periodic from at least ``before`` samples before the segment; from rest elsewhere, and
+    where that linear part is unstable: its periodic orbit would be one the loop never
+    leaves in a simulation (rounding is all that would seed its growing mode), and the fit
+    must see an unstable model diverge (or run into the rig's limits) as it does from rest."""
+    pert = steady_state.perturbation(trial)
+    if pert is None or trial.start - pert.periodic_from < before:
+        return SteadyStart(None)
+    lp = steady_state.loop(trial, arm, linear_part(mechanisms))
+    if not steady_state.is_stable(lp):
+        return SteadyStart(None)
+    return SteadyStart((pert, lp, steady_state.steady_state(lp, pert)))
+
+
+def linear_part(mechanisms: Mechanisms) -> Mechanisms:
+    """The mechanisms without their nonlinear and time-varying parts (dry friction's
+    Coulomb and Stribeck terms, stiffening, grip coupling, an unbalanced wheel)."""
+    cf = mechanisms.coulomb_friction
+    return replace(
+        mechanisms,
+        coulomb_friction=type(cf)(viscous_nms_per_rad=cf.viscous_nms_per_rad),
+        stiffness_nonlinearity=type(mechanisms.stiffness_nonlinearity)(),
+        grip_scheduled_stiffness=type(mechanisms.grip_scheduled_stiffness)(),
+        wheel_imbalance=type(mechanisms.wheel_imbalance)(),
+    )
 
 
 def _split(mechanisms: Mechanisms) -> tuple[Mechanisms, float]:
@@ -148,13 +215,17 @@ def simulated_spectra(trial: TrialData, arm: ArmParams, mechanisms: Mechanisms) 
     """
     mech, tau = _split(mechanisms)
     rems = trial.remnant
-    if rems and needs_remnant(mech):
-        Y = sum(
-            _spectra(trial, simulate_trial(trial, arm, mech, sign * r))
-            for r in rems
-            for sign in (1.0, -1.0)
-        ) / (2 * len(rems))
-    else:
+    Y = _steady_spectra(trial, arm, mech)
+    if Y is None and rems and needs_remnant(mech):
+        start = steady_start(trial, arm, mech)
+        # The spectra are linear in the series: the mean run's spectra, one transform.
+        runs = [
+            simulate_trial(trial, arm, mech, sign * r, start) for r in rems for sign in (1.0, -1.0)
+        ]
+        with np.errstate(all="ignore"):  # a diverged run: non-finite, as in _spectra
+            mean = {k: np.mean([o[k] for o in runs], axis=0) for k in runs[0]}
+        Y = _spectra(trial, mean)
+    elif Y is None:
         Y = _spectra(trial, simulate_trial(trial, arm, mech))
     # Row 4: the factor that undoes the reading delay in the wheel-equation channel (see
     # analysis.diagnosis.fit.raw_vectors); 1 without a delay.
@@ -166,6 +237,22 @@ def simulated_spectra(trial: TrialData, arm: ArmParams, mechanisms: Mechanisms) 
         Y[3] = Y[3] * shift
         undo = 1.0 / shift
     return np.vstack([Y, undo[None, :]])
+
+
+def _steady_spectra(trial: TrialData, arm: ArmParams, mech: Mechanisms) -> np.ndarray | None:
+    """The model's spectra from its periodic steady state, bin by bin, where that route
+    applies (:mod:`analysis.diagnosis.steady_state`: a linear, time-invariant, stable model
+    clear of the rig's limits, on a periodic perturbation); else None."""
+    pert = steady_state.perturbation(trial)
+    if pert is None or not steady_state.is_linear_time_invariant(mech):
+        return None
+    lp = steady_state.loop(trial, arm, mech)
+    if not steady_state.is_stable(lp):
+        return None
+    ss = steady_state.steady_state(lp, pert)
+    if not steady_state.within_linear_range(trial, lp, ss, pert):
+        return None
+    return steady_state.spectra(trial, ss, pert)
 
 
 def _remnant_spectrum(trial: TrialData, arm: ArmParams) -> tuple[np.ndarray, np.ndarray]:
@@ -220,10 +307,16 @@ def simulated_segment(
     """The model's (θ, Td) over the analysed segment, mean-free, for time-domain comparisons
     (averaged over the remnant realisations exactly as :func:`simulated_spectra`)."""
     mech, tau = _split(mechanisms)
+    # The reading delay's interpolation reads τ·fs samples before the segment.
+    start = steady_start(trial, arm, mech, before=int(np.ceil(tau * trial.fs_hz)) + 2)
     runs = (
-        [simulate_trial(trial, arm, mech, sign * r) for r in trial.remnant for sign in (1.0, -1.0)]
+        [
+            simulate_trial(trial, arm, mech, sign * r, start)
+            for r in trial.remnant
+            for sign in (1.0, -1.0)
+        ]
         if trial.remnant and needs_remnant(mech)
-        else [simulate_trial(trial, arm, mech)]
+        else [simulate_trial(trial, arm, mech, None, start)]
     )
     th = np.asarray(sum(o["wheel_angle_rad"] for o in runs)) / len(runs)
     td = np.asarray(sum(o["driver_torque_Nm"] for o in runs)) / len(runs)
