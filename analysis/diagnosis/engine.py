@@ -515,12 +515,11 @@ def evaluate_candidate(
     # The family's prior is shared among its K forms (as drift's): 2 ln K on the −2 log L
     # scale, the price of choosing the best of K shapes on the same data.
     d_bic = fit.bic - current.fit.bic + 2.0 * math.log(len(forms))
-    r = CandidateResult(
+    return CandidateResult(
         name, step, fit, float(d_m2ll), float(d_bic), None, form=form.name,
         form_m2ll=form_m2ll, forms_consistent=[] if only_first else _consistent(form_m2ll),
         only_first_form=only_first,
     )  # fmt: skip
-    return r
 
 
 def needs_held_out(setup: Setup, r: CandidateResult) -> bool:
@@ -778,12 +777,7 @@ def select(
                 done, pending = wait(futs)
                 results = [f.result() for f in futs if f in done]
                 if pending:
-                    # Not started: cancelled; already running on an executor we were given:
-                    # left to finish, unwanted (only our own pool's workers are ours to stop).
-                    for f in pending:
-                        f.cancel()
-                    if own_pool:
-                        _abandon(executor)
+                    _drop(pending, executor, own_pool)
                     executor = None
                     names_left = ", ".join(futs[f] for f in futs if f in pending)
                     undone.append(f"step {step}: {names_left} not evaluated")
@@ -895,10 +889,7 @@ def _held_out_stage(
             if f in done:
                 add_held_out(setup, current, r, f.result())
         if pending:
-            for f in pending:
-                f.cancel()
-            if own_pool:
-                _abandon(executor)
+            _drop(pending, executor, own_pool)
             executor = None
             cut([futs[f] for f in futs if f in pending])
             return False
@@ -931,6 +922,15 @@ def _worker_folds(
 ) -> tuple[list[np.ndarray], list[float], dict[str, float]]:
     with _limit_threads():
         return held_out_folds(shared_value(setup), current, r)
+
+
+def _drop(pending: set, executor: cf.Executor, own_pool: bool) -> None:
+    """Work left at the time limit: not started, cancelled; already running on an executor we
+    were given, left to finish, unwanted (only our own pool's workers are ours to stop)."""
+    for f in pending:
+        f.cancel()
+    if own_pool:
+        _abandon(executor)
 
 
 def _abandon(executor: cf.Executor) -> None:

@@ -147,23 +147,10 @@ def steady_start(
     pert = steady_state.perturbation(trial)
     if pert is None or trial.start - pert.periodic_from < before:
         return SteadyStart(None)
-    lp = steady_state.loop(trial, arm, linear_part(mechanisms))
+    lp = steady_state.loop(trial, arm, steady_state.linear_part(mechanisms))
     if not steady_state.is_stable(lp):
         return SteadyStart(None)
     return SteadyStart((pert, lp, steady_state.steady_state(lp, pert)))
-
-
-def linear_part(mechanisms: Mechanisms) -> Mechanisms:
-    """The mechanisms without their nonlinear and time-varying parts (dry friction's
-    Coulomb and Stribeck terms, stiffening, grip coupling, an unbalanced wheel)."""
-    cf = mechanisms.coulomb_friction
-    return replace(
-        mechanisms,
-        coulomb_friction=type(cf)(viscous_nms_per_rad=cf.viscous_nms_per_rad),
-        stiffness_nonlinearity=type(mechanisms.stiffness_nonlinearity)(),
-        grip_scheduled_stiffness=type(mechanisms.grip_scheduled_stiffness)(),
-        wheel_imbalance=type(mechanisms.wheel_imbalance)(),
-    )
 
 
 def _split(mechanisms: Mechanisms) -> tuple[Mechanisms, float]:

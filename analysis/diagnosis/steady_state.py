@@ -49,7 +49,7 @@ When this route is not taken
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
@@ -142,14 +142,29 @@ def _perturbation(trial) -> Perturbation | None:
     return pert
 
 
+# The parts of the mechanisms that are not linear and time-invariant: these two functions
+# name the same ones (the sensor delay and drift are applied outside the world, see
+# ``simulate._split``).
 def is_linear_time_invariant(mech: Mechanisms) -> bool:
-    """Whether the world's loop with these mechanisms is linear and time-invariant (the
-    sensor delay and drift are applied outside the world, see ``simulate._split``)."""
+    """Whether the world's loop with these mechanisms is linear and time-invariant."""
     return not (
         mech.coulomb_friction.torque_nm != 0.0
         or mech.stiffness_nonlinearity.active
         or mech.grip_scheduled_stiffness.active
         or mech.wheel_imbalance.active
+    )
+
+
+def linear_part(mech: Mechanisms) -> Mechanisms:
+    """The mechanisms without their nonlinear and time-varying parts (dry friction's
+    Coulomb and Stribeck terms, stiffening, grip coupling, an unbalanced wheel)."""
+    cf = mech.coulomb_friction
+    return replace(
+        mech,
+        coulomb_friction=type(cf)(viscous_nms_per_rad=cf.viscous_nms_per_rad),
+        stiffness_nonlinearity=type(mech.stiffness_nonlinearity)(),
+        grip_scheduled_stiffness=type(mech.grip_scheduled_stiffness)(),
+        wheel_imbalance=type(mech.wheel_imbalance)(),
     )
 
 
@@ -159,13 +174,17 @@ class Loop:
 
     Ad: np.ndarray
     Bd: np.ndarray
-    p: np.ndarray  # the kernel's parameter vector (hardware.sim.world P_*)
-    k_sw: float
-    b_sw: float
-    k_c: float
-    b_c: float
+    q: np.ndarray  # the compiled functions' scalars (:func:`_scalars`)
     n_reflex: int  # reflex delay, samples
     n_command: int  # length of the ring of past commands (the lag's delay form), 0: none
+
+    @property
+    def k_sw(self) -> float:
+        return float(self.q[0])
+
+    @property
+    def b_sw(self) -> float:
+        return float(self.q[1])
 
 
 @lru_cache(maxsize=512)
@@ -182,11 +201,8 @@ def loop(trial, arm: ArmParams, mech: Mechanisms) -> Loop:
     p = np.zeros(W.N_PARAMS)
     p[W.P_DT] = 1.0 / fs
     mech.configure(p, ConditionBehaviour(arm, 0.0, 0.0, 0.0), fs)
-    return Loop(
-        Ad, Bd, p, float(trial.wheel.stiffness_nm_per_rad), float(trial.wheel.damping_nms_per_rad),
-        float(arm.k_c), float(arm.b_c), mech.reflex_delay_samples(fs),
-        mech.command_ring_samples(fs),
-    )  # fmt: skip
+    q = _scalars(p, trial.wheel.stiffness_nm_per_rad, trial.wheel.damping_nms_per_rad, arm)
+    return Loop(Ad, Bd, q, mech.reflex_delay_samples(fs), mech.command_ring_samples(fs))
 
 
 @njit(cache=True, inline="always")
@@ -278,10 +294,11 @@ def _bins(z, U, Ad, Bd, q, n_reflex, out):  # pragma: no cover - compiled
         out[10, k] = k_c * (x[0] - x[2]) + b_c * (x[1] - x[3])
 
 
-def _scalars(lp: Loop) -> np.ndarray:
-    p = lp.p
+def _scalars(p: np.ndarray, k_sw: float, b_sw: float, arm: ArmParams) -> np.ndarray:
+    """What :func:`_bins` and :func:`_closed_loop` read, from the kernel's parameter vector
+    ``p`` (hardware.sim.world P_*), the rendered wheel's spring and damper and the arm."""
     return np.concatenate([
-        [lp.k_sw, lp.b_sw, p[W.P_RKP], p[W.P_RKV], p[W.P_VISC], lp.k_c, lp.b_c],
+        [k_sw, b_sw, p[W.P_RKP], p[W.P_RKV], p[W.P_VISC], arm.k_c, arm.b_c],
         [p[W.P_LAG_FORM], p[W.P_ACT_ALPHA], p[W.P_LAG_N], p[W.P_LAG_FRAC]],
         p[W.P_LAG2 : W.P_LAG2 + 6],
         [p[W.P_DT], p[W.P_RW], p[W.P_RZ]],
@@ -316,7 +333,7 @@ ROWS = ("theta", "omega", "theta_h", "omega_h", "cmd", "tm", "tmd", "drive", "ra
 
 def steady_state(lp: Loop, pert: Perturbation) -> SteadyState:
     out = np.empty((len(ROWS), len(pert.z)), dtype=complex)
-    _bins(pert.z, pert.phasors, lp.Ad, lp.Bd, _scalars(lp), lp.n_reflex, out)
+    _bins(pert.z, pert.phasors, lp.Ad, lp.Bd, lp.q, lp.n_reflex, out)
     return SteadyState(out)
 
 
@@ -325,7 +342,7 @@ def closed_loop_matrix(lp: Loop) -> np.ndarray:
     those of the kernel's states the model uses: the applied torque (a first-order lag; and
     its rate, a second-order one), the reflex's activation and its rate and its last n_r
     drives, the last commands (the lag's delay form); the rings ordered by age."""
-    return _closed_loop(lp.Ad, lp.Bd, _scalars(lp), lp.n_reflex, max(lp.n_command - 1, 0))
+    return _closed_loop(lp.Ad, lp.Bd, lp.q, lp.n_reflex, max(lp.n_command - 1, 0))
 
 
 @njit(cache=True)

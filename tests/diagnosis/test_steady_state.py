@@ -189,7 +189,7 @@ def test_nonlinear_models_are_simulated_from_their_linear_parts_steady_state(tri
     assert np.max(np.abs(route - kernel)) < 1e-8 * np.max(np.abs(kernel))
     # Dry friction: its linear part keeps the viscous term.
     dry = CoulombFriction(torque_nm=0.1, viscous_nms_per_rad=0.4)
-    part = simulate.linear_part(Mechanisms(coulomb_friction=dry))
+    part = ss.linear_part(Mechanisms(coulomb_friction=dry))
     assert part.coulomb_friction.torque_nm == 0.0
     assert part.coulomb_friction.viscous_nms_per_rad == 0.4
 
