@@ -183,3 +183,19 @@ def test_abandoning_our_own_pool_stops_its_busy_workers():
     for p in procs:
         p.join(10)
         assert not p.is_alive()
+
+
+def test_a_later_step_tries_only_what_improved_the_step_before():
+    """Improved the first step by much and the second by nothing: not tried at the third."""
+    names = ["reflex_delay", "actuator_lag", "stiffness_nonlinearity", "sensor_delay"]
+    step1 = [_result(n, 1000.0) for n in names]
+    step2 = [
+        _result("reflex_delay", 0.07),
+        _result("actuator_lag", RETRY_MIN_DELTA_M2LL - 1.0),
+        _result("stiffness_nonlinearity", 19.0),
+    ]  # sensor_delay retained at step 1: not in step 2
+    assert engine.retried(names, []) == names
+    assert engine.retried(names[:3], [step1]) == names[:3]
+    assert engine.retried(names[:3], [step1, step2]) == ["stiffness_nonlinearity"]
+    # A name the step before did not try (dropped earlier) stays dropped.
+    assert engine.retried(["coulomb_friction"], [step1, step2]) == []
