@@ -403,17 +403,11 @@ def _arm_jacobian_linear_part(trials, st, W, mech, names=ARM_FREE) -> dict[str, 
     """:func:`_arm_jacobian_fd` of the model's linear part (module docstring: an approximate
     slope for a model that must be simulated; the linear part takes the bin route)."""
     lin = steady_state.linear_part(mech)
-    A = {}
-    for t in trials:
-        arm = st.arms[t.label]
-        r0 = W[t.label](residual_vectors(t, simulated_spectra(t, arm, lin)))
-        A[t.label] = np.empty((len(r0), len(names)))
-        for j, name in enumerate(names):
-            lo, hi = ARM_BOUNDS[name]
-            bumped = min(max(getattr(arm, name) * math.exp(ARM_STEP), lo), hi)
-            Ys = simulated_spectra(t, replace(arm, **{name: bumped}), lin)
-            A[t.label][:, j] = (W[t.label](residual_vectors(t, Ys)) - r0) / ARM_STEP
-    return A
+    r0 = {
+        t.label: W[t.label](residual_vectors(t, simulated_spectra(t, st.arms[t.label], lin)))
+        for t in trials
+    }
+    return _arm_jacobian_fd(trials, replace(st, r=r0), W, lin, names)
 
 
 def _inertia_subjects(trials: Sequence[TrialData], fit_inertia: bool) -> list[str]:
@@ -618,7 +612,7 @@ def fit_model(
         """(H_mm, g_m, per-trial blocks) at ``st``; the arm's slope approximate or exact."""
         mech = spec.mechanisms(st.x)
         r = st.r
-        fd = FD_ARM_JACOBIAN_WITH_MECHANISMS and [m for m in mech.active() if m != "drift"]
+        fd = simulated_slope(mech)
         if fd and approximate:
             A = _arm_jacobian_linear_part(trials, st, W, mech, names)
         elif fd or not approximate:
@@ -658,13 +652,16 @@ def fit_model(
             g_m += b.T @ rr
         return H_mm, g_m, blocks
 
+    def simulated_slope(mech: Mechanisms) -> bool:
+        """Whether the arm's slope comes from the simulator (any mechanism but drift on)."""
+        return FD_ARM_JACOBIAN_WITH_MECHANISMS and any(m != "drift" for m in mech.active())
+
     def has_approximation(x: np.ndarray) -> bool:
         """Whether the arm's slope at ``x`` has an approximate form (module docstring): the
         continuous-time arm's for the plain arm, the linear part's for a model that must be
         simulated."""
         mech = spec.mechanisms(x)
-        fd = FD_ARM_JACOBIAN_WITH_MECHANISMS and [m for m in mech.active() if m != "drift"]
-        return not fd or not steady_state.is_linear_time_invariant(mech)
+        return not simulated_slope(mech) or not steady_state.is_linear_time_invariant(mech)
 
     approximate = False
     for iteration in range(1, max_iter + 1):
@@ -680,9 +677,7 @@ def fit_model(
         # is next anyway. (The plain arm's continuous-time slope keeps its eight tries: its
         # evaluations are cheap, and with two a reflex's four-iteration form screening ended
         # elsewhere, 157 units of −2 log L worse for the independent world's 25 ms reflex.)
-        linear_part_slope = approximate and any(
-            m != "drift" for m in spec.mechanisms(st.x).active()
-        )
+        linear_part_slope = approximate and simulated_slope(spec.mechanisms(st.x))
         for _ in range(2 if linear_part_slope else 8):
             S_mm = H_mm + lam * np.diag(np.diag(H_mm) + 1e-12)
             s_m = g_m.copy()
