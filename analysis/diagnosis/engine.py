@@ -523,6 +523,11 @@ def evaluate_candidate(
         form_m2ll = {f.name: r.m2ll for r, f in fits}
         screened, form = min(fits, key=lambda pair: pair[0].m2ll)
         fit = fit_model(setup.trials, screened.spec, setup.noise, screened.arms, x0=screened.x)
+        # The full fit can walk into a corner its screening did not reach: the independent
+        # world's second-order lag ended with three trials' arms at bounds, 1 000 units of
+        # −2 log L above the fit from plausible arms, and every candidate of the next step,
+        # started from those, "improved" on it by as much (and went to its held-out folds).
+        fit = _out_of_corners(setup.trials, screened.spec, setup.noise, fit, {})
         form_m2ll[form.name] = fit.m2ll
     d_m2ll = current.fit.m2ll - fit.m2ll
     # The family's prior is shared among its K forms (as drift's): 2 ln K on the −2 log L
@@ -839,6 +844,7 @@ def select(
         setup.final_noise = noise_model(setup.trials, final.simulated)
         a0 = start_arms(setup, setup.trials, final_spec, setup.final_noise, final.x, final.arms)
         final = fit_model(setup.trials, final_spec, setup.final_noise, a0, x0=final.x)
+        final = _out_of_corners(setup.trials, final_spec, setup.final_noise, final, {})
         _confirm_refits(setup, retained, final)
     return Selection(
         steps, retained, final, final_spec, setup.base, current.fold_x, current.fit, undone

@@ -46,7 +46,9 @@ Optimisation
     by its budget, such as the few iterations that screen a family's forms, may end on the
     approximate slope). The arm's columns were five of every iteration's seven simulations
     per trial and remnant run; the mechanisms' columns and every cost are always the model's
-    own.
+    own. The plain arm (no mechanism on) has an approximate slope too, from the
+    continuous-time loop (:func:`arm_jacobian`). Where the steps tried must be simulated, an
+    approximate slope gets two tries per iteration (each costs a simulation), not eight.
 
 Uncertainty
     The covariance of x is the inverse Fisher information 2 JᵀJ of the whitened residuals
@@ -84,6 +86,10 @@ TOL_PER_TRIAL = 0.01
 # profile; the continuous-time approximation (plain arm only) left fits stuck half-way.
 FD_ARM_JACOBIAN_WITH_MECHANISMS = True
 UNSTABLE_RESIDUAL = 1e6  # whitened residual given to every value of a diverged simulation
+# The arm's slope in a fit (module docstring, Optimisation)
+CONTINUOUS_TIME = "continuous_time"  # the plain arm's, approximate
+LINEAR_PART = "linear_part"  # a simulated model's linear part, approximate
+FINITE_DIFFERENCES = "finite_differences"  # the model's own, exact
 
 NoiseModel = dict[str, np.ndarray]  # trial label → (n_bins, 2, 2) covariance of v
 
@@ -570,6 +576,18 @@ def is_unstable_cost(cost: float) -> bool:
     return not cost < UNSTABLE_RESIDUAL**2
 
 
+def steps_are_simulated(spec: ModelSpec, x: np.ndarray, n_free: int) -> bool:
+    """Whether a fit's tried steps from ``x`` must be simulated: the model at ``x`` is
+    nonlinear, or (``n_free`` mechanism coordinates free) becomes so once a step moves a free
+    coordinate. Most start at 0, "off" (a friction of 0 N·m): judged there, every family
+    looked linear."""
+    models = [x]
+    if n_free:
+        step = np.array([p.step for p in spec.specs()])
+        models += [spec.clip(x + step), spec.clip(x - step)]
+    return not all(steady_state.is_linear_time_invariant(spec.mechanisms(m)) for m in models)
+
+
 def fit_model(
     trials: Sequence[TrialData],
     spec: ModelSpec,
@@ -605,17 +623,17 @@ def fit_model(
     last = None
     specs = spec.specs()
     lo_i, hi_i = (math.log(v) for v in ARM_BOUNDS[INERTIA])
-    exact = False  # the continuous-time arm Jacobian failed: finite differences from then on
+    exact = False  # the approximate slope found no descent: finite differences from then on
     names = ARM_FREE + ((INERTIA,) if subjects else ())
 
-    def normal_equations(st: _State, approximate: bool) -> tuple[np.ndarray, np.ndarray, dict]:
-        """(H_mm, g_m, per-trial blocks) at ``st``; the arm's slope approximate or exact."""
+    def normal_equations(st: _State, slope: str) -> tuple[np.ndarray, np.ndarray, dict]:
+        """(H_mm, g_m, per-trial blocks) at ``st``, the arm's columns from ``slope``
+        (:func:`arm_slope`)."""
         mech = spec.mechanisms(st.x)
         r = st.r
-        fd = simulated_slope(mech)
-        if fd and approximate:
+        if slope == LINEAR_PART:
             A = _arm_jacobian_linear_part(trials, st, W, mech, names)
-        elif fd or not approximate:
+        elif slope == FINITE_DIFFERENCES:
             A = _arm_jacobian_fd(trials, st, W, mech, names)
         else:
             A = {t.label: arm_jacobian(t, st.arms[t.label], st.Ysim[t.label], W[t.label], names)
@@ -652,33 +670,33 @@ def fit_model(
             g_m += b.T @ rr
         return H_mm, g_m, blocks
 
-    def simulated_slope(mech: Mechanisms) -> bool:
-        """Whether the arm's slope comes from the simulator (any mechanism but drift on)."""
-        return FD_ARM_JACOBIAN_WITH_MECHANISMS and any(m != "drift" for m in mech.active())
-
-    def has_approximation(x: np.ndarray) -> bool:
-        """Whether the arm's slope at ``x`` has an approximate form (module docstring): the
-        continuous-time arm's for the plain arm, the linear part's for a model that must be
-        simulated."""
+    def arm_slope(x: np.ndarray) -> str:
+        """The arm's slope at ``x`` (module docstring): an approximate one (the plain arm's
+        in continuous time, a simulated model's linear part) until it finds no descent,
+        finite differences of the model itself from then on (``exact``) and wherever the
+        model is linear and has a mechanism on (the bin route makes them cheap)."""
         mech = spec.mechanisms(x)
-        return not simulated_slope(mech) or not steady_state.is_linear_time_invariant(mech)
+        simulated = FD_ARM_JACOBIAN_WITH_MECHANISMS and any(m != "drift" for m in mech.active())
+        if exact or (simulated and steady_state.is_linear_time_invariant(mech)):
+            return FINITE_DIFFERENCES
+        return LINEAR_PART if simulated else CONTINUOUS_TIME
 
-    approximate = False
+    simulated_steps = steps_are_simulated(spec, x, n_m)
+    slope = FINITE_DIFFERENCES
     for iteration in range(1, max_iter + 1):
         it = iteration
-        # The approximate slope until it finds no descent (then ``exact``).
-        approximate = not exact and has_approximation(st.x)
-        H_mm, g_m, blocks = normal_equations(st, approximate)
+        slope = arm_slope(st.x)
+        H_mm, g_m, blocks = normal_equations(st, slope)
         last = (H_mm, blocks)
         accepted = False
         gain = 0.0
-        # A linear part's slope whose first step fails is not worth damping further: each
-        # try costs a simulation (sixteen runs per trial in a final fit), and the exact slope
-        # is next anyway. (The plain arm's continuous-time slope keeps its eight tries: its
-        # evaluations are cheap, and with two a reflex's four-iteration form screening ended
-        # elsewhere, 157 units of −2 log L worse for the independent world's 25 ms reflex.)
-        linear_part_slope = approximate and simulated_slope(spec.mechanisms(st.x))
-        for _ in range(2 if linear_part_slope else 8):
+        # An approximate slope whose first step fails is not worth damping much further when
+        # each try costs a simulation (sixteen runs per trial in a final fit): the exact
+        # slope is next anyway. Where tries take the bin route they are cheap and keep
+        # eight: with two, a reflex's four-iteration form screening ended elsewhere, 157
+        # units of −2 log L worse for the independent world's 25 ms reflex.
+        approximate = slope != FINITE_DIFFERENCES
+        for _ in range(2 if approximate and simulated_steps else 8):
             S_mm = H_mm + lam * np.diag(np.diag(H_mm) + 1e-12)
             s_m = g_m.copy()
             inv = {}
@@ -727,10 +745,10 @@ def fit_model(
     n_values = 2 * sum(len(t.bins) for t in trials)
     lack = st.total / n_values  # E|z|² = 1 per complex value within noise
     cov = np.zeros((0, 0))
-    if n_m and last is not None and approximate and max_iter >= MAX_ITER:
+    if n_m and last is not None and slope != FINITE_DIFFERENCES and max_iter >= MAX_ITER:
         # A budget spent before the exact slope was taken: the covariance needs the exact one.
         # (Not for a short screening fit, whose covariance nothing reads.)
-        H_mm, _, blocks = normal_equations(st, approximate=False)
+        H_mm, _, blocks = normal_equations(st, FINITE_DIFFERENCES)
         last = (H_mm, blocks)
     if n_m and last is not None:
         cov = _mechanism_covariance(last, trials, n_m)
