@@ -246,16 +246,18 @@ def _out_of_corners(
     of −2 log L above the optimum the next step's candidates all found from plausible arms,
     and each of them then looked 13 000 units better than the model it extends.
     """
-    if not any(_degenerate(fit.arms[t.label]) for t in trials):
+    stuck = [t for t in trials if _degenerate(fit.arms[t.label])]
+    if not stuck:
         return fit
     # A corner whose plausible arm makes the loop unstable is kept: from there a fit has no
-    # slope to follow and runs its iterations for nothing.
-    a0 = best_start_arms(
-        trials, spec, noise, [_unstuck(trials, fit.arms)], x=fit.x, last_resort=fit.arms
+    # slope to follow and runs its iterations for nothing. (Only the stuck trials' starts are
+    # in question: every other trial starts where the fit ended.)
+    out = best_start_arms(
+        stuck, spec, noise, [_unstuck(stuck, fit.arms)], x=fit.x, last_resort=fit.arms
     )
-    if all(a0[t.label] is fit.arms[t.label] for t in trials):
+    if all(out[t.label] is fit.arms[t.label] for t in stuck):
         return fit
-    alt = fit_model(trials, spec, noise, a0, x0=fit.x, **opts)
+    alt = fit_model(trials, spec, noise, {**fit.arms, **out}, x0=fit.x, **opts)
     return alt if alt.m2ll < fit.m2ll else fit
 
 
