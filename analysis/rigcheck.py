@@ -497,11 +497,11 @@ def lag_equivalent(tau_d: float, h: float) -> tuple[float, float]:
 
 
 def lag_time_constant(delay_s: float, h: float) -> float:
-    """The inverse of :func:`lag_equivalent`: the discrete lag at hold ``h`` whose continuous
-    equivalent is ``delay_s`` (0 when ``delay_s`` ≤ h/2: the hold alone is that slow)."""
-    if delay_s <= 0.5 * h:
-        return 0.0
-    return h / math.log1p(h / (delay_s - 0.5 * h))
+    """The simulator's actuator lag τ (:class:`hardware.sim.mechanisms.ActuatorLag`, a lag in
+    continuous time on a command held for ``h``) whose continuous-time equivalent is
+    ``delay_s``: τ + h/2 (0 when ``delay_s`` ≤ h/2: the hold alone is that slow). (The
+    model's own discrete lag is :func:`lag_equivalent`'s.)"""
+    return max(delay_s - 0.5 * h, 0.0)
 
 
 @dataclass

@@ -61,6 +61,7 @@ from steerlab.analysis.diagnosis.fit import (
     best_start_arms,
     evaluate_cost,
     fit_model,
+    geometric_mean_arm,
     noise_model,
 )
 from steerlab.analysis.diagnosis.simulate import (
@@ -237,8 +238,9 @@ def fit_nested(
 def _out_of_corners(
     trials: Sequence[TrialData], spec: ModelSpec, noise: NoiseModel, fit: FitResult, opts: dict
 ) -> FitResult:
-    """``fit`` again from plausible arms for the trials whose arm ended at a bound, at the
-    fitted mechanism parameters; the better of the two.
+    """``fit`` again for the trials whose arm ended at a bound, from plausible arms or the
+    arm the condition's other trials fitted, whichever starts better (:func:`_corner_exits`),
+    at the fitted mechanism parameters; the better of the two fits.
 
     An arm parameter at its bound has no finite-difference slope (the bumped value is clipped
     back), so the fit cannot leave the corner it ran into: on a study with a 5 ms reading
@@ -253,12 +255,53 @@ def _out_of_corners(
     # slope to follow and runs its iterations for nothing. (Only the stuck trials' starts are
     # in question: every other trial starts where the fit ended.)
     out = best_start_arms(
-        stuck, spec, noise, [_unstuck(stuck, fit.arms)], x=fit.x, last_resort=fit.arms
-    )
+        stuck, spec, noise, _corner_exits(trials, stuck, fit.arms), x=fit.x,
+        last_resort=fit.arms,
+    )  # fmt: skip
     if all(out[t.label] is fit.arms[t.label] for t in stuck):
         return fit
     alt = fit_model(trials, spec, noise, {**fit.arms, **out}, x0=fit.x, **opts)
     return alt if alt.m2ll < fit.m2ll else fit
+
+
+def _corner_exits(
+    trials: Sequence[TrialData], stuck: Sequence[TrialData], arms: dict[str, ArmParams]
+) -> list[dict[str, ArmParams]]:
+    """Starts for the ``stuck`` trials of a fit on ``trials``: plausible arms with the fit's
+    inertia of the subject; and the arm the fit gave the condition's trials that are not
+    stuck (their geometric mean; where there are none, the plausible arm again), with the
+    fit's inertia of the subject, or the data's where every trial of the subject is stuck
+    (its whole fit collapsed, its inertia with it).
+
+    On the independent world's 12 ms torque-sensor delay the delay's fit found the delay
+    (11.98 ms) and left every trial of one subject in a corner (b_i = 1 000 or k_i = 10⁵,
+    I_i a quarter of the data's), −2 log L 7 300–8 100 per trial, where the other subject's
+    fitted at 6 300–6 700. That subject's FRF fits had run into bounds, so its plausible arms
+    were the simulator's nominal ones: they started at 48 000–255 000 and the fit from them
+    ended worse than the corner. From the other subject's arms the fit got out, 7 300 units
+    better; without it the next steps' candidates "improved" on the corner by thousands. On
+    the 12 ms actuator lag's study a subject collapsed the same way at I_i = 10 kg·m², the
+    inertia's upper bound, where no arm fits."""
+    keep = _unstuck(stuck, arms)
+    stuck_labels = {t.label for t in stuck}
+    collapsed = {
+        s
+        for s in {t.subject for t in stuck}
+        if all(t.label in stuck_labels for t in trials if t.subject == s)
+    }
+    borrowed = dict(keep)
+    for t in stuck:
+        others = [
+            arms[o.label]
+            for o in trials
+            if o.condition == t.condition and o.label not in stuck_labels
+        ]
+        if others:
+            like = arms[t.label]
+            if t.subject in collapsed and math.isfinite(t.I_i):
+                like = replace(like, I_i=t.I_i)
+            borrowed[t.label] = geometric_mean_arm(others, like=like)
+    return [keep, borrowed]
 
 
 def set_remnants(trials: Sequence[TrialData], arms: dict[str, ArmParams], k: int) -> None:

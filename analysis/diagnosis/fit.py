@@ -347,6 +347,12 @@ def _arm_from_log(arm: ArmParams, z: np.ndarray) -> ArmParams:
     return replace(arm, **{n: float(np.exp(v)) for n, v in zip(ARM_FREE, z, strict=True)})
 
 
+def geometric_mean_arm(arms: Sequence[ArmParams], like: ArmParams) -> ArmParams:
+    """``like`` with its fitted arm parameters (not the inertia) the geometric mean of
+    ``arms``'."""
+    return _arm_from_log(like, np.mean([_arm_log(a) for a in arms], axis=0))
+
+
 def arm_jacobian(
     trial: TrialData,
     arm: ArmParams,

@@ -223,24 +223,29 @@ def _bins(z, U, Ad, Bd, q, n_reflex, out):  # pragma: no cover - compiled
     form, alpha, n_lag, frac = q[7], q[8], int(q[9]), q[10]
     f00, f01, f10, f11, g0, g1 = q[11], q[12], q[13], q[14], q[15], q[16]
     dt, w, ze = q[17], q[18], q[19]
+    m0, m1, m2 = q[20], q[21], q[22]
     reflex = k_p != 0.0 or k_v != 0.0
     M = np.empty((4, 5), dtype=np.complex128)
     x = np.empty(4, dtype=np.complex128)
     for k in range(z.shape[0]):
         zk = z[k]
         zi = zk.conjugate()  # |z| = 1
-        # The actuator's lag L = T_m / cmd (and the second order's rate, Ld).
+        # The actuator's lag L = T_m / cmd (and the second order's rate, Ld), T_m at the
+        # sample's end; La: the torque applied over the sample, the lag's mean over it.
         ld = 0.0j
         if form == 1.0:
             m00, m01, m10, m11 = 1.0 - f00 * zi, -f01 * zi, -f10 * zi, 1.0 - f11 * zi
             det = m00 * m11 - m01 * m10
             lk = (m11 * g0 - m01 * g1) / det
             ld = (m00 * g1 - m10 * g0) / det
+            la = m2 + zi * (m0 * lk + m1 * ld)
         elif form == 2.0:
             zn = _power(zi, n_lag)
             lk = (1.0 - frac) * zn + frac * zn * zi
+            la = lk
         else:
             lk = alpha / (1.0 - (1.0 - alpha) * zi)
+            la = 1.0 - m0 + m0 * zi * lk
         # The reflex: delay and activation (semi-implicit Euler), T_h / drive.
         rk = 0.0j
         if reflex:
@@ -252,11 +257,11 @@ def _bins(z, U, Ad, Bd, q, n_reflex, out):  # pragma: no cover - compiled
                 M[a, b] = -Ad[a, b]
             M[a, a] += zk
             # −Bd F: F's rows act on θ, ω (command), θ_h, ω_h (reflex), ω (viscous).
-            M[a, 0] += Bd[a, 0] * lk * k_sw
-            M[a, 1] += Bd[a, 0] * lk * b_sw + Bd[a, 2] * b_v
+            M[a, 0] += Bd[a, 0] * la * k_sw
+            M[a, 1] += Bd[a, 0] * la * b_sw + Bd[a, 2] * b_v
             M[a, 2] -= Bd[a, 1] * rk * k_p
             M[a, 3] -= Bd[a, 1] * rk * k_v
-            M[a, 4] = Bd[a, 0] * lk * U[k]
+            M[a, 4] = Bd[a, 0] * la * U[k]
         # Gaussian elimination, partial pivoting (on |re| + |im|).
         for c in range(4):
             piv = c
@@ -302,6 +307,7 @@ def _scalars(p: np.ndarray, k_sw: float, b_sw: float, arm: ArmParams) -> np.ndar
         [p[W.P_LAG_FORM], p[W.P_ACT_ALPHA], p[W.P_LAG_N], p[W.P_LAG_FRAC]],
         p[W.P_LAG2 : W.P_LAG2 + 6],
         [p[W.P_DT], p[W.P_RW], p[W.P_RZ]],
+        p[W.P_LAG_MEAN : W.P_LAG_MEAN + 3],
     ])  # fmt: skip
 
 
@@ -325,7 +331,8 @@ class SteadyState:
         return self.rows[ROWS.index(name)]
 
 
-# cmd: the loop's command; tm, tmd: the applied torque and (second-order lag) its rate;
+# cmd: the loop's command; tm, tmd: the lag's torque at the sample's end (applied over the next
+# sample with the command: the kernel's P_LAG_MEAN) and (second-order lag) its rate;
 # drive: k_p θ_h + k_v ω_h before its delay; ra, rad: the reflex's torque and its rate;
 # td: the driver torque.
 ROWS = ("theta", "omega", "theta_h", "omega_h", "cmd", "tm", "tmd", "drive", "ra", "rad", "td")
@@ -351,6 +358,7 @@ def _closed_loop(Ad, Bd, q, nr, nc):  # pragma: no cover - compiled
     form, alpha, n_lag, frac = q[7], q[8], int(q[9]), q[10]
     f00, f01, f10, f11, g0, g1 = q[11], q[12], q[13], q[14], q[15], q[16]
     dt, w, ze = q[17], q[18], q[19]
+    m0, m1, m2 = q[20], q[21], q[22]
     reflex = k_p != 0.0 or k_v != 0.0
     n_tm = 2 if form == 1.0 else (1 if form == 0.0 and alpha != 1.0 else 0)
     if not reflex:
@@ -387,6 +395,16 @@ def _closed_loop(Ad, Bd, q, nr, nc):  # pragma: no cover - compiled
         tm[:] = alpha * cmd
         if n_tm:
             tm[i_tm] += 1.0 - alpha
+    # The torque applied over the sample: the lag's mean over it (tm is its value at the end).
+    applied = tm.copy()
+    if form == 1.0:
+        applied[:] = m2 * cmd
+        applied[i_tm] += m0
+        applied[i_tm + 1] += m1
+    elif form == 0.0:
+        applied[:] = (1.0 - m0) * cmd
+        if n_tm:
+            applied[i_tm] += m0
     drive = np.zeros(n)
     drive[2], drive[3] = k_p, k_v
     ra = np.zeros(n)
@@ -408,7 +426,7 @@ def _closed_loop(Ad, Bd, q, nr, nc):  # pragma: no cover - compiled
             A[r, c] = Ad[r, c]
         A[r, 1] -= Bd[r, 2] * b_v
         for c in range(n):
-            A[r, c] += Bd[r, 0] * tm[c] + Bd[r, 1] * ra[c]
+            A[r, c] += Bd[r, 0] * applied[c] + Bd[r, 1] * ra[c]
     if n_tm:
         A[i_tm] = tm
     if n_tm == 2:

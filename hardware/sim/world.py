@@ -52,7 +52,11 @@ P_STRIB, P_STRIB_V, P_VISC = 22, 23, 24  # F_s − F_c, v_s; viscous b_v
 P_LAG_FORM = 25  # 0 first order (P_ACT_ALPHA), 1 second order (P_LAG2..+6), 2 delay
 P_LAG2 = 26  # Φ00, Φ01, Φ10, Φ11, Γ0, Γ1 of the second-order lag
 P_LAG_N, P_LAG_FRAC = 32, 33  # the delay form: whole samples, fraction
-N_PARAMS = 34
+# The torque applied over a sample: the lag's mean over it, from its state at the sample's
+# start and the held command. First order: cmd + m (T − cmd), in P_LAG_MEAN alone (0: no lag);
+# second order: m0 T + m1 T' + m2 cmd.
+P_LAG_MEAN = 34
+N_PARAMS = 37
 # Indices into the kernel's state vector (beyond the 4 mechanical states).
 S_TM, S_RA, S_RAD, S_RPOS, S_SPOS, S_CMD = 4, 5, 6, 7, 8, 9
 S_NONFINITE = 10  # cycles whose command had a non-finite input (zero torque applied instead)
@@ -240,13 +244,16 @@ def _advance(
         st[S_CMD] = cmd
         lag_form = p[P_LAG_FORM]
         if lag_form == 0.0:
+            applied = cmd + p[P_LAG_MEAN] * (st[S_TM] - cmd)
             st[S_TM] += p[P_ACT_ALPHA] * (cmd - st[S_TM])
         elif lag_form == 1.0:
             y, yd = st[S_TM], st[S_TMD]
+            applied = p[P_LAG_MEAN] * y + p[P_LAG_MEAN + 1] * yd + p[P_LAG_MEAN + 2] * cmd
             st[S_TM] = p[P_LAG2] * y + p[P_LAG2 + 1] * yd + p[P_LAG2 + 4] * cmd
             st[S_TMD] = p[P_LAG2 + 2] * y + p[P_LAG2 + 3] * yd + p[P_LAG2 + 5] * cmd
         else:
             st[S_TM] = _delayed_command(st, p, cmd)
+            applied = st[S_TM]
         th, om, thh, omh = x[0], x[1], x[2], x[3]
         contact = p[P_KC] * (th - thh) + p[P_BC] * (om - omh)
         # Torques of added mechanisms, held over the sample.
@@ -297,7 +304,7 @@ def _advance(
             pos = int(st[S_SPOS])
             ring_s[pos] = contact
             st[S_SPOS] = (pos + 1) % ns
-        u[0] = st[S_TM]
+        u[0] = applied
         u[1] = h
         u[2] = w
         for a in range(4):

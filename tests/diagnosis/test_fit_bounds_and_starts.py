@@ -23,6 +23,7 @@ from steerlab.analysis.diagnosis import steady_state as ss
 from steerlab.analysis.diagnosis.candidates import CANDIDATES, candidate
 from steerlab.analysis.diagnosis.data import prepare_study
 from steerlab.analysis.diagnosis.fit import (
+    ARM_BOUNDS,
     ModelSpec,
     _bounded_step,
     best_start_arms,
@@ -261,3 +262,53 @@ def test_a_fits_steps_are_simulated_exactly_for_the_nonlinear_families(name, for
     # The same once the family is on (as where a later step re-fits it).
     on = spec.clip(x + np.array([p.step for p in spec.specs()]))
     assert steps_are_simulated(spec, on, spec.n_free) == (name in NONLINEAR_FAMILIES)
+
+
+# -- a subject's whole fit in corners ---------------------------------------------------------
+@pytest.fixture(scope="module")
+def two_subjects(tmp_path_factory):
+    """The independent world's null study, two subjects × PT, one period per trial."""
+    from steerlab.benchmarks.otherworld import generate_study
+    from steerlab.protocols.interchange import import_study
+
+    root = tmp_path_factory.mktemp("two")
+    generate_study(root / "csv", seed=5, mechanisms=[], **{**ow.SMALL_STUDY, "subjects": 2})
+    import_study(root / "csv", root / "s")
+    return prepare_study(load_study(root / "s")).trials
+
+
+@pytest.mark.parametrize("inertia", ["a quarter", "at its upper bound"])
+def test_a_subject_whose_whole_fit_collapsed_restarts_from_the_others_arms(
+    two_subjects, monkeypatch, inertia
+):
+    """Where every trial of a subject ends in a corner and its inertia has gone with them, the
+    way out starts from the arms the other subjects' trials of the condition fitted, with the
+    data's inertia. On the independent world's sensor-delay study one subject collapsed this
+    way (I_i a quarter of the data's), on its actuator-lag study one at I_i's upper bound; the
+    first's FRF fits had run into bounds, so its plausible arms were far from the data, and
+    from those no fit got out. Here the collapse is the fault injected into a good fit, and
+    the plausible arm is a far one."""
+    trials = two_subjects
+    spec = ModelSpec(Mechanisms(), (), trials[0].fs_hz)
+    ref = {t.label: simulate.simulated_spectra(t, PLAUSIBLE, Mechanisms()) for t in trials}
+    noise = noise_model(trials, ref)
+    good = engine.fit_model(trials, spec, noise, {t.label: t.arm_cell for t in trials})
+    assert not any(engine._degenerate(a) for a in good.arms.values()), good.arms
+    first = trials[0].subject
+    top = ARM_BOUNDS["I_i"][1]
+    arms = {
+        t.label: replace(a, I_i=a.I_i / 4 if inertia == "a quarter" else top, b_i=1e3, k_i=1e5)
+        if t.subject == first
+        else a
+        for t, a in ((t, good.arms[t.label]) for t in trials)
+    }
+    collapsed = replace(
+        good, arms=arms, cost_trial=evaluate_cost(trials, spec, noise, arms, good.x)
+    )
+    assert collapsed.m2ll > good.m2ll
+    far = ArmParams(I_i=0.1, b_i=1.0, k_i=13.0, b_c=2.6, k_c=100.0)  # a BT12-like arm
+    monkeypatch.setattr(engine, "plausible_arm", lambda t, model_baseline=None: far)
+    out = engine._out_of_corners(trials, spec, noise, collapsed, {})
+    assert not any(engine._degenerate(a) for a in out.arms.values()), out.arms
+    assert out.m2ll < good.m2ll + 1.0, (out.m2ll, good.m2ll)
+    np.testing.assert_allclose(out.inertia[first], good.inertia[first], rtol=0.05)

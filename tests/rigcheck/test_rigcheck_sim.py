@@ -18,7 +18,6 @@ from steerlab.analysis.rigcheck import (
     RigCheckError,
     fit_rig,
     identify,
-    lag_equivalent,
     lag_time_constant,
     load_rig_model,
     measured_world,
@@ -54,8 +53,9 @@ def world(inertia=0.3, coulomb=0.0, gravity=0.0, lag=0.0):
 
 
 def truth(inertia=0.3, coulomb=0.0, gravity=0.0, lag=0.0, damping=2.0, stiffness=4.2):
-    # The simulated loop samples and holds at 1 kHz: its lag's continuous-time equivalent.
-    delay = lag_equivalent(lag, 1 / FS)[0]
+    # The simulated loop samples and holds at 1 kHz: its lag's continuous-time equivalent, the
+    # lag's τ and half the hold (the simulator's lag acts in continuous time on the held command).
+    delay = lag + 0.5 / FS
     return dict(zip(PARAMS, (inertia, damping, stiffness, coulomb, gravity, delay), strict=True))
 
 
@@ -172,7 +172,7 @@ def test_simulate_with_rig_model_records_the_wheel(tmp_path, fast_protocol_file)
     assert w["mechanisms"]["coulomb_friction"]["torque_nm"] == 0.15
     # At the fast protocol's 200 Hz loop, the lag with the same continuous equivalent.
     tau = w["mechanisms"]["actuator_lag"]["tau_s"]
-    assert lag_equivalent(tau, 1 / 200)[0] == pytest.approx(truth(**KNOWN)["delay_s"])
+    assert tau + 0.5 / 200 == pytest.approx(truth(**KNOWN)["delay_s"])
     # The report header names the wheel.
     from steerlab.analysis.pipeline import load_directory, wheel_used_sentence
 
