@@ -998,7 +998,7 @@ def recorded_rig_model(attrs: Mapping[str, Any], where: str) -> dict | None:
 def measured_world(rig_model: dict, world, wheel, fs_hz: float):
     """(WorldConfig, VirtualWheel) for the simulator with the measured wheel: inertia, rendered
     damping and stiffness, friction, imbalance, and the actuator lag as the simulated loop's
-    discrete lag with the same continuous-time equivalent (:func:`lag_time_constant`)."""
+    lag with the same continuous-time equivalent (:func:`lag_time_constant`)."""
     from steerlab.hardware.sim.mechanisms import ActuatorLag, CoulombFriction, WheelImbalance
 
     v = {k: float(rig_model[k]["value"]) for k in PARAMS}

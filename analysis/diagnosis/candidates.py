@@ -4,9 +4,10 @@ Names are the slots of :class:`hardware.sim.mechanisms.Mechanisms`. Each fitted 
 a *fitting coordinate* in which its effect on the simulated signals is smooth and close to
 linear at the start value, so that Gauss–Newton works from "mechanism off":
 
-- ``actuator_lag``: the discrete first-order lag y_k = (1 − u) x_k + u y_{k−1}, fitted in u
-  (0: no lag); τ = −1/(f_ref ln u) with f_ref the data's sample rate. In τ the effect has a
-  kink at zero (nothing happens until τ is a fraction of a sample).
+- ``actuator_lag``: fitted in τ itself. The simulator's lag acts in continuous time on the
+  held command, so the loop's low-frequency delay is τ (plus the hold's h/2), linear from 0.
+  (The discrete lag it replaced was fitted in its pole u = e^{−h/τ}, in which that lag's
+  effect was linear; under the continuous lag u = 0.02 is already τ ≈ h/4.)
 - ``sensor_delay``: fitted as a continuous delay, applied in the frequency domain
   (:mod:`analysis.diagnosis.simulate`); the world rounds it to whole samples.
 - all others: in their own units.
@@ -28,7 +29,6 @@ any change between trials. It is fitted on those parameters (:mod:`analysis.diag
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 from steerlab.hardware.sim.mechanisms import Mechanisms
@@ -42,29 +42,14 @@ class ParamSpec:
     lower: float  # bounds, fitting coordinate
     upper: float
     start: float = 0.0  # fitting coordinate when the mechanism is switched on from "off"
-    transform: str = "identity"  # or "lag": u ↔ τ (see the module docstring)
 
     def to_physical(self, x: float, fs_ref: float) -> float:
-        if self.transform == "lag":
-            if x <= 0.0:
-                return 0.0
-            x = min(x, 0.999999)
-            return -1.0 / (fs_ref * math.log(x))
+        """The parameter's value at fitting coordinate ``x`` (every coordinate is the value
+        itself; ``fs_ref``, the data's sample rate, is for coordinates that need it)."""
         return float(x)
 
     def to_coordinate(self, v: float, fs_ref: float) -> float:
-        if self.transform == "lag":
-            return math.exp(-1.0 / (fs_ref * v)) if v > 0 else 0.0
         return float(v)
-
-    def derivative(self, x: float, fs_ref: float) -> float:
-        """d physical / d coordinate, for the delta method."""
-        if self.transform == "lag":
-            if x <= 0.0:
-                return float("nan")
-            lx = math.log(min(x, 0.999999))
-            return 1.0 / (fs_ref * x * lx * lx)
-        return 1.0
 
 
 @dataclass(frozen=True)
@@ -170,7 +155,7 @@ STIFFENING_FORMS = (
 )
 # The actuator: a first-order lag, a second-order one (ω_n = 1/τ, ζ 0.7, a servo drive's
 # current and velocity loops), or a pure delay (bus and processing time).
-LAG_TAU = ParamSpec("tau_s", "s", 0.02, 0.0, 0.995, start=0.02, transform="lag")
+LAG_TAU = ParamSpec("tau_s", "s", 0.001, 0.0, 0.5, start=0.001)
 LAG_FORMS = (
     Form("first order", (("form", "first_order"),)),
     Form("second order (ζ 0.7; τ = 1/ω_n)", (("form", "second_order"), ("zeta", 0.7))),

@@ -267,11 +267,11 @@ def _out_of_corners(
 def _corner_exits(
     trials: Sequence[TrialData], stuck: Sequence[TrialData], arms: dict[str, ArmParams]
 ) -> list[dict[str, ArmParams]]:
-    """Starts for the ``stuck`` trials of a fit on ``trials``: plausible arms with the fit's
-    inertia of the subject; and the arm the fit gave the condition's trials that are not
-    stuck (their geometric mean; where there are none, the plausible arm again), with the
-    fit's inertia of the subject, or the data's where every trial of the subject is stuck
-    (its whole fit collapsed, its inertia with it).
+    """Starts for the ``stuck`` trials of a fit on ``trials``: plausible arms; and the arm
+    the fit gave the condition's trials that are not stuck (their geometric mean; where there
+    are none, the plausible arm again). Each with the fit's inertia of the subject, or the
+    data's where every trial of the subject is stuck (its whole fit collapsed, its inertia
+    with it).
 
     On the independent world's 12 ms torque-sensor delay the delay's fit found the delay
     (11.98 ms) and left every trial of one subject in a corner (b_i = 1 000 or k_i = 10⁵,
@@ -282,12 +282,15 @@ def _corner_exits(
     better; without it the next steps' candidates "improved" on the corner by thousands. On
     the 12 ms actuator lag's study a subject collapsed the same way at I_i = 10 kg·m², the
     inertia's upper bound, where no arm fits."""
-    keep = _unstuck(stuck, arms)
     stuck_labels = {t.label for t in stuck}
     collapsed = {
         s
         for s in {t.subject for t in stuck}
         if all(t.label in stuck_labels for t in trials if t.subject == s)
+    }
+    unstuck = _unstuck(stuck, arms)
+    keep = {
+        t.label: plausible_arm(t) if t.subject in collapsed else unstuck[t.label] for t in stuck
     }
     borrowed = dict(keep)
     for t in stuck:

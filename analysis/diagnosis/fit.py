@@ -152,17 +152,8 @@ class ModelSpec:
             se = float("nan")
             lo = hi = float("nan")
             if cov is not None and cov.shape[0] > i and np.isfinite(cov[i, i]) and cov[i, i] >= 0:
-                sx = math.sqrt(cov[i, i])
-                if p.transform == "lag":
-                    # τ(u) is monotonic: map the interval's ends, exact; the SE by the delta
-                    # method is only indicative there.
-                    lo = p.to_physical(max(float(x[i]) - 1.96 * sx, 0.0), self.fs_ref)
-                    hi = p.to_physical(min(float(x[i]) + 1.96 * sx, 0.999999), self.fs_ref)
-                    d = p.derivative(float(x[i]), self.fs_ref)
-                    se = abs(d) * sx if np.isfinite(d) else (hi - lo) / 3.92
-                else:
-                    se = sx
-                    lo, hi = v - 1.96 * se, v + 1.96 * se
+                se = math.sqrt(cov[i, i])
+                lo, hi = v - 1.96 * se, v + 1.96 * se
             rows.append(
                 {
                     "mechanism": c.name,

@@ -259,7 +259,7 @@ def _run(
     stages("load")
     choice = choose_wheel(directory, rig_model=rig_model, nominal=nominal_wheel)
     records = load_study(directory)
-    # The actuator lag becomes the simulated loop's discrete lag at the data's rate.
+    # The actuator lag becomes the simulated loop's lag at the data's rate (τ = delay − h/2).
     wheel = choice.wheel(float(np.median([r.fs_hz for r in records])) if records else 1000.0)
     rig_limits, limit_notes = recorded_rig_limits(directory)
     prep = prepare_study(records, wheel, inertia_kgm2, rig_limits)

@@ -15,7 +15,8 @@ is the state before a sample's step, Ad, Bd its exact discretisation, inputs (T_
 T_wheel))::
 
     cmd  = Tp − b_sw ω − k_sw θ                         the loop's command (nothing clipped)
-    T_m  = L(z) cmd                                      actuator lag (first, second order, delay)
+    T_m  = La(z) cmd                                     actuator lag (first, second order, delay):
+                                                         its mean over the sample
     T_h  = R(z) z^{−n_r} (k_p θ_h + k_v ω_h)             reflex: delay, activation dynamics
     T_w  = −b_v ω                                        viscous friction
     z x  = Ad x + Bd (T_m, T_h, T_w)
@@ -217,7 +218,7 @@ def _power(x, n):  # pragma: no cover - compiled
 @njit(cache=True)
 def _bins(z, U, Ad, Bd, q, n_reflex, out):  # pragma: no cover - compiled
     """Per bin, every phasor of the loop (rows of ``out``, :data:`_ROWS`), from
-    (zI − Ad − Bd F(z)) x = Bd[:, 0] L(z) U (module docstring). ``q``: the scalars of
+    (zI − Ad − Bd F(z)) x = Bd[:, 0] La(z) U (module docstring). ``q``: the scalars of
     :func:`_scalars`."""
     k_sw, b_sw, k_p, k_v, b_v, k_c, b_c = q[0], q[1], q[2], q[3], q[4], q[5], q[6]
     form, alpha, n_lag, frac = q[7], q[8], int(q[9]), q[10]
@@ -346,7 +347,7 @@ def steady_state(lp: Loop, pert: Perturbation) -> SteadyState:
 
 def closed_loop_matrix(lp: Loop) -> np.ndarray:
     """The loop's state-transition matrix with the perturbation at zero. The state is x, then
-    those of the kernel's states the model uses: the applied torque (a first-order lag; and
+    those of the kernel's states the model uses: the lag's torque (a first-order lag; and
     its rate, a second-order one), the reflex's activation and its rate and its last n_r
     drives, the last commands (the lag's delay form); the rings ordered by age."""
     return _closed_loop(lp.Ad, lp.Bd, lp.q, lp.n_reflex, max(lp.n_command - 1, 0))
@@ -360,7 +361,8 @@ def _closed_loop(Ad, Bd, q, nr, nc):  # pragma: no cover - compiled
     dt, w, ze = q[17], q[18], q[19]
     m0, m1, m2 = q[20], q[21], q[22]
     reflex = k_p != 0.0 or k_v != 0.0
-    n_tm = 2 if form == 1.0 else (1 if form == 0.0 and alpha != 1.0 else 0)
+    # A lag so short that alpha rounds to 1 still weighs the last sample's torque (m0 > 0).
+    n_tm = 2 if form == 1.0 else (1 if form == 0.0 and (alpha != 1.0 or m0 != 0.0) else 0)
     if not reflex:
         nr = 0
     if form != 2.0:

@@ -111,7 +111,7 @@ LAG_FORMS = ("first_order", "second_order", "delay")
 class ActuatorLag:
     """The applied motor torque lags the command.
 
-    - ``first_order`` (default): time constant τ = ``tau_s`` (exact discrete lag);
+    - ``first_order`` (default): time constant τ = ``tau_s`` (its state updated exactly);
     - ``second_order``: ω_n = 1/``tau_s``, damping ratio ``zeta`` (exact zero-order-hold
       discretisation of T'' = ω_n² (cmd − T) − 2ζω_n T');
     - ``delay``: the command reaches the motor ``delay_s`` later (a fraction of a sample by

@@ -230,7 +230,8 @@ def _advance(
             )
         else:
             ang, vel, tdm = _measure(x, st, p, ring_s, vel_noise[k], td_noise[k])
-        # What the drive reports as torque actual at this cycle: last cycle's applied torque.
+        # What the drive reports as torque actual at this cycle: the lag's torque now (the
+        # delay form's: last cycle's applied torque).
         tm_reported = st[S_TM]
         if internal:
             cmd = loop_command(tp[j], ang, vel, st[S_CMD], p[P_KSW], p[P_BSW], safety)

@@ -20,8 +20,7 @@ def test_every_form_switches_its_law_on_and_is_recognised(family):
     assert len(set(names)) == len(names)
     for form in family.forms:
         c = family.with_form(form)
-        x = [p.to_coordinate(p.step * 5, 1000.0) if p.transform == "lag" else p.step * 5
-             for p in c.params]  # fmt: skip
+        x = [p.step * 5 for p in c.params]
         mech = c.apply(Mechanisms(), x, 1000.0)
         assert c.is_on(mech), form.name
         # A model holding this form is re-fitted in it (engine.evaluate_candidate).

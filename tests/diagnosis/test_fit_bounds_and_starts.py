@@ -312,3 +312,24 @@ def test_a_subject_whose_whole_fit_collapsed_restarts_from_the_others_arms(
     assert not any(engine._degenerate(a) for a in out.arms.values()), out.arms
     assert out.m2ll < good.m2ll + 1.0, (out.m2ll, good.m2ll)
     np.testing.assert_allclose(out.inertia[first], good.inertia[first], rtol=0.05)
+
+
+def test_every_subject_collapsed_restarts_from_plausible_arms_with_the_datas_inertia(
+    two_subjects,
+):
+    """Where every subject's fit collapsed there are no other arms to start from: the
+    plausible ones are, with the data's inertia, not the collapsed one (on the independent
+    world's pure-delay lag every trial of a subject ended at I_i = 10 kg·m², the bound)."""
+    trials = two_subjects
+    spec = ModelSpec(Mechanisms(), (), trials[0].fs_hz)
+    ref = {t.label: simulate.simulated_spectra(t, PLAUSIBLE, Mechanisms()) for t in trials}
+    noise = noise_model(trials, ref)
+    good = engine.fit_model(trials, spec, noise, {t.label: t.arm_cell for t in trials})
+    top = ARM_BOUNDS["I_i"][1]
+    arms = {t.label: replace(good.arms[t.label], I_i=top, b_i=1e3, k_i=1e5) for t in trials}
+    collapsed = replace(
+        good, arms=arms, cost_trial=evaluate_cost(trials, spec, noise, arms, good.x)
+    )
+    out = engine._out_of_corners(trials, spec, noise, collapsed, {})
+    assert not any(engine._degenerate(a) for a in out.arms.values()), out.arms
+    assert out.m2ll < good.m2ll + 1.0, (out.m2ll, good.m2ll)
