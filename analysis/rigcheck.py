@@ -23,7 +23,9 @@ of at most ``MAX_HOLD_S`` (a near-continuous actuator; the recorded T_p interpol
 the model's angle is compared with the recorded one at the recording's own (jittered) time
 stamps; a step longer than ``GAP_FACTOR`` × the median is a gap, and each gap-free segment gets
 its own initial state. ``delay_s`` is the lag's continuous-time equivalent at low frequency,
-h/(e^{h/τ} − 1) + h/2 (:func:`lag_equivalent`), which includes the hold's own half interval.
+τ + h/2 (:func:`lag_equivalent`; the lag acts in continuous time on the held command, the
+torque over a hold interval its mean there, as in Steerlab's simulator), which includes the
+hold's own half interval.
 
 Estimator: output error. The angle is simulated from the recorded T_p and the parameters
 (I, b, k, F_c, G, τ and each gap-free segment's initial angle and velocity) minimise the
@@ -467,40 +469,37 @@ def prepare(rec: Recording) -> Prepared:
 
 # -- the model ------------------------------------------------------------------------------
 @njit(cache=True)
-def _simulate(u, th0, om0, I, b, k, fc, eps, g, t0, alpha, h, out):
+def _simulate(u, th0, om0, I, b, k, fc, eps, g, t0, alpha, m, h, out):
     """θ at the start of each hold interval (len(u) + 1 values into ``out``): the command is
-    computed from the state at the interval's start, passed through the discrete lag and held;
-    the wheel moves exactly under the held torques; ``t0`` is a constant torque on the wheel."""
+    computed from the state at the interval's start and held; the lag acts on it in
+    continuous time, and the torque over the interval is the lag's mean over it (``m``: the
+    weight of the lag's torque at the interval's start; ``alpha``: its exact update), as in
+    Steerlab's simulator; the wheel moves exactly under the held torques; ``t0`` is a
+    constant torque on the wheel."""
     th, om = th0, om0
     T = u[0] - b * om - k * th
     for j in range(len(u)):
         out[j] = th
         cmd = u[j] - b * om - k * th
+        applied = cmd + m * (T - cmd)
         T += alpha * (cmd - T)
-        acc = (T + t0 - fc * np.tanh(om / eps) - g * np.sin(th)) / I
+        acc = (applied + t0 - fc * np.tanh(om / eps) - g * np.sin(th)) / I
         th += om * h + 0.5 * acc * h * h
         om += acc * h
     out[len(u)] = th
 
 
-def lag_equivalent(tau_d: float, h: float) -> tuple[float, float]:
-    """The model's discrete lag (time constant ``tau_d``, hold ``h``) as a continuous-time
-    lag: h/(e^{h/τ} − 1) + h/2 (the lag's own part plus the hold's half interval); and its
-    derivative with respect to τ."""
-    if tau_d <= 0:
-        return 0.5 * h, 0.0
-    x = h / tau_d
-    if x > 50:
-        return 0.5 * h, 0.0
-    em = math.expm1(x)
-    return h / em + 0.5 * h, x * x * (em + 1.0) / (em * em)
+def lag_equivalent(tau: float, h: float) -> tuple[float, float]:
+    """The model's lag (time constant ``tau`` on a command held for ``h``) as a delay at low
+    frequency: τ + h/2 (the lag's own part plus the hold's half interval); and its derivative
+    with respect to τ."""
+    return max(tau, 0.0) + 0.5 * h, 1.0
 
 
 def lag_time_constant(delay_s: float, h: float) -> float:
-    """The simulator's actuator lag τ (:class:`hardware.sim.mechanisms.ActuatorLag`, a lag in
-    continuous time on a command held for ``h``) whose continuous-time equivalent is
-    ``delay_s``: τ + h/2 (0 when ``delay_s`` ≤ h/2: the hold alone is that slow). (The
-    model's own discrete lag is :func:`lag_equivalent`'s.)"""
+    """The inverse of :func:`lag_equivalent`: the lag τ (the model's and the simulator's,
+    :class:`hardware.sim.mechanisms.ActuatorLag`) at hold ``h`` whose continuous-time
+    equivalent is ``delay_s`` (0 when ``delay_s`` ≤ h/2: the hold alone is that slow)."""
     return max(delay_s - 0.5 * h, 0.0)
 
 
@@ -543,11 +542,12 @@ class _Problem:
         I, b, k, fc, g, tau, t0 = x[:NG]
         h = self.prep.hold_s
         alpha = 1.0 if tau <= 0 else -math.expm1(-h / tau)
+        m = 0.0 if tau <= 0 else alpha * tau / h
         res = []
         for s, seg in enumerate(self.segs):
             th = np.empty(len(seg.u) + 1)
             th0, om0 = x[NG + 2 * s], x[NG + 1 + 2 * s]
-            _simulate(seg.u, th0, om0, I, b, k, fc, self.eps, g, t0, alpha, h, th)
+            _simulate(seg.u, th0, om0, I, b, k, fc, self.eps, g, t0, alpha, m, h, th)
             idx1 = np.minimum(seg.idx + 1, len(th) - 1)
             res.append(th[seg.idx] * (1.0 - seg.w) + th[idx1] * seg.w)
         return res
@@ -640,7 +640,7 @@ class RigFit:
     initial_states: list[tuple[float, float]]
     nominal: Nominal
     cost_evals: int
-    lag_time_constant_s: float  # the model's discrete lag τ at hold_s
+    lag_time_constant_s: float  # the model's lag τ at hold_s
     offset_nm: float = 0.0  # constant torque on the wheel (bias, cogging mean), not judged
     offset_sem: float | None = None
 
@@ -660,7 +660,7 @@ class RigFit:
                     "hold_s": self.hold_s,
                     "lag_time_constant_s": self.lag_time_constant_s,
                     "delay_s_is": "the continuous-time equivalent of the actuator's lag, "
-                    "including the hold's half interval: h/(exp(h/τ) − 1) + h/2",
+                    "including the hold's half interval: τ + h/2",
                 },
                 "sem_method": "Jacobian sandwich with Newey–West residual autocovariance "
                 f"({self.hac_lags} lags)",
@@ -710,8 +710,6 @@ def fit_rig(prep: Prepared, *, nominal: Nominal | None = None, eps: float = EPS_
     # A parameter the fit left on a bound is held there: the SEMs are those of the others,
     # given it (its own SEM is not defined: None in rig.json).
     held = (res.active_mask != 0) | (x <= lo) | (x >= hi)
-    if x[5] < prep.hold_s / 40:  # a lag this short is no lag at this hold: α = 1 to 1e-17
-        x[5], held[5] = 0.0, True
     scaled = np.linalg.norm(J, axis=0) * np.maximum(np.abs(x), 1e-3)
     held |= scaled <= 1e-9 * np.max(scaled)  # no effect on the residual at all
     free = np.flatnonzero(~held)
