@@ -55,6 +55,8 @@ from scipy.ndimage import median_filter
 from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
+from steerlab.hardware.sim.mechanisms import first_order_lag_weights
+
 PARAMS = (
     "inertia_kgm2",
     "damping_Nms_per_rad",
@@ -541,8 +543,7 @@ class _Problem:
         """The model's angle at every raw sample of every segment."""
         I, b, k, fc, g, tau, t0 = x[:NG]
         h = self.prep.hold_s
-        alpha = 1.0 if tau <= 0 else -math.expm1(-h / tau)
-        m = 0.0 if tau <= 0 else alpha * tau / h
+        alpha, m = first_order_lag_weights(tau, h)
         res = []
         for s, seg in enumerate(self.segs):
             th = np.empty(len(seg.u) + 1)

@@ -300,9 +300,7 @@ def _corner_exits(
             if o.condition == t.condition and o.label not in stuck_labels
         ]
         if others:
-            like = arms[t.label]
-            if t.subject in collapsed and math.isfinite(t.I_i):
-                like = replace(like, I_i=t.I_i)
+            like = with_inertia(arms[t.label], t) if t.subject in collapsed else arms[t.label]
             borrowed[t.label] = geometric_mean_arm(others, like=like)
     return [keep, borrowed]
 

@@ -290,9 +290,8 @@ class Mechanisms:
         tau = lag.tau_s
         # Exact discrete first-order lag; alpha = 1 is no lag. The torque applied over a
         # sample is the lag's mean over it (the class docstring).
-        first = tau > 0 and lag.form == "first_order"
-        p[w.P_ACT_ALPHA] = -np.expm1(-dt / tau) if first else 1.0
-        p[w.P_LAG_MEAN] = -np.expm1(-dt / tau) * tau / dt if first else 0.0
+        first = lag.form == "first_order"
+        p[w.P_ACT_ALPHA], p[w.P_LAG_MEAN] = first_order_lag_weights(tau if first else 0.0, dt)
         if lag.form == "second_order" and tau > 0:
             p[w.P_LAG_FORM] = 1.0
             p[w.P_LAG2 : w.P_LAG2 + 6] = _second_order_zoh(1.0 / tau, lag.zeta, dt)
@@ -333,6 +332,16 @@ class Mechanisms:
         else:
             d[:, 1] = k_i * g.relative_change(block["grip_true_N"] / mean)
         return d
+
+
+def first_order_lag_weights(tau: float, dt: float) -> tuple[float, float]:
+    """(alpha, m) of a first-order lag τ on a command held for ``dt``: its exact update
+    T ← T + alpha (cmd − T), and the torque over the sample, its mean there,
+    cmd + m (T − cmd) from T at the sample's start. (1, 0) for τ ≤ 0: no lag."""
+    if tau <= 0:
+        return 1.0, 0.0
+    alpha = float(-np.expm1(-dt / tau))
+    return alpha, alpha * tau / dt
 
 
 def _second_order_matrix(wn: float, zeta: float) -> np.ndarray:

@@ -116,11 +116,10 @@ def _quiet_run(mech: Mechanisms, n: int = 3000) -> dict[str, np.ndarray]:
     return w.run(design_multisine().signal(np.arange(n) / 1000.0))
 
 
-def _replay(out, hand_law, wheel_law, dt=1e-3, I_w=0.3) -> np.ndarray:
-    """The wheel angle of the wheel–contact–arm system driven by the recorded motor command,
-    with the mechanism's torques computed here from its law and held over each sample."""
+def _wheel_arm_matrix(I_w: float) -> np.ndarray:
+    """(θ, ω, θ_h, ω_h)' of the wheel–contact–arm system, no torque on it."""
     a = QUIET.arm
-    A = np.array(
+    return np.array(
         [
             [0.0, 1.0, 0.0, 0.0],
             [-a.k_c / I_w, -a.b_c / I_w, a.k_c / I_w, a.b_c / I_w],
@@ -128,6 +127,13 @@ def _replay(out, hand_law, wheel_law, dt=1e-3, I_w=0.3) -> np.ndarray:
             [a.k_c / a.I_i, a.b_c / a.I_i, -(a.k_c + a.k_i) / a.I_i, -(a.b_c + a.b_i) / a.I_i],
         ]
     )
+
+
+def _replay(out, hand_law, wheel_law, dt=1e-3, I_w=0.3) -> np.ndarray:
+    """The wheel angle of the wheel–contact–arm system driven by the recorded motor command,
+    with the mechanism's torques computed here from its law and held over each sample."""
+    a = QUIET.arm
+    A = _wheel_arm_matrix(I_w)
     B = np.array([[0, 0, 0], [1 / I_w, 0, 1 / I_w], [0, 0, 0], [0, 1 / a.I_i, 0]], dtype=float)
     Ad, Bd, *_ = cont2discrete((A, B, np.eye(4), np.zeros((4, 3))), dt, method="zoh")
     x = np.zeros(4)
@@ -235,11 +241,8 @@ def _replay_continuous_lag(out, tau: float, dt=1e-3, I_w=0.3) -> np.ndarray:
     """The wheel angle of the wheel–contact–arm system with a first-order lag in continuous
     time (dT/dt = (cmd − T)/τ) on the recorded command held over each sample: the exact
     zero-order-hold discretisation of the five states together."""
-    a = QUIET.arm
     A = np.zeros((5, 5))
-    A[0, 1] = A[2, 3] = 1.0
-    A[1, :4] = [-a.k_c / I_w, -a.b_c / I_w, a.k_c / I_w, a.b_c / I_w]
-    A[3, :4] = [a.k_c / a.I_i, a.b_c / a.I_i, -(a.k_c + a.k_i) / a.I_i, -(a.b_c + a.b_i) / a.I_i]
+    A[:4, :4] = _wheel_arm_matrix(I_w)
     A[1, 4] = 1.0 / I_w
     A[4, 4] = -1.0 / tau
     B = np.zeros((5, 1))
