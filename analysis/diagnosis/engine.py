@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import math
+import multiprocessing.connection as mp_connection
 import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
@@ -1006,14 +1007,27 @@ def _drop(pending: set, executor: cf.Executor, own_pool: bool) -> None:
         _abandon(executor)
 
 
-def _abandon(executor: cf.Executor) -> None:
+ABANDON_GRACE_S = 5.0
+
+
+def _abandon(executor: cf.Executor, grace_s: float = ABANDON_GRACE_S) -> None:
     """Stop a pool whose work is no longer wanted: queued work is cancelled and the workers
-    still busy are terminated (shutdown alone would wait for them)."""
+    still busy are terminated (shutdown alone would wait for them), then killed if they have
+    not ended within ``grace_s``."""
     # Read before shutdown: it sets the pool's process table to None.
     procs = list((getattr(executor, "_processes", None) or {}).values())
     executor.shutdown(wait=False, cancel_futures=True)
     for proc in procs:
         proc.terminate()
+    # Wait on the sentinels, never join: the pool's own thread reaps these processes too, and
+    # a second waitpid on a reaped child reports "no such child", which reads as "alive".
+    waiting = {proc.sentinel: proc for proc in procs}
+    deadline = time.monotonic() + grace_s
+    while waiting and (left := deadline - time.monotonic()) > 0:
+        for ended in mp_connection.wait(list(waiting), left):
+            del waiting[ended]
+    for proc in waiting.values():
+        proc.kill()
 
 
 def _confirm_refits(setup: Setup, retained: list[CandidateResult], final: FitResult) -> None:

@@ -17,6 +17,8 @@ fits.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import multiprocessing.connection as mp_connection
+import signal
 import time
 from types import SimpleNamespace
 
@@ -170,19 +172,46 @@ def _burn(seconds: float) -> float:
     return seconds
 
 
-def test_abandoning_our_own_pool_stops_its_busy_workers():
-    # At the time limit with --jobs > 1 the fits still running are stopped, not waited for.
+def _busy_pool(fn, *args) -> tuple[cf.ProcessPoolExecutor, list]:
     pool = cf.ProcessPoolExecutor(1)
-    fut = pool.submit(_burn, 60.0)
+    fut = pool.submit(fn, *args)
     t0 = time.monotonic()
     while not fut.running() and time.monotonic() - t0 < 30:
         time.sleep(0.05)
     procs = list(pool._processes.values())
     assert procs
-    engine._abandon(pool)
+    return pool, procs
+
+
+def _assert_ended(procs) -> None:
+    # The sentinel, not join/is_alive: the pool's own thread reaps the worker too, and
+    # is_alive reads a child reaped by another thread as alive.
     for p in procs:
-        p.join(10)
-        assert not p.is_alive()
+        assert mp_connection.wait([p.sentinel], 10), f"worker {p.pid} still running"
+
+
+def test_abandoning_our_own_pool_stops_its_busy_workers():
+    # At the time limit with --jobs > 1 the fits still running are stopped, not waited for.
+    pool, procs = _busy_pool(_burn, 60.0)
+    engine._abandon(pool)
+    _assert_ended(procs)
+
+
+def _burn_deaf_to_sigterm(seconds: float, ready: str) -> float:
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    open(ready, "w").close()
+    return _burn(seconds)
+
+
+def test_a_worker_that_outlives_its_grace_is_killed(tmp_path):
+    ready = tmp_path / "deaf"
+    pool, procs = _busy_pool(_burn_deaf_to_sigterm, 60.0, str(ready))
+    t0 = time.monotonic()
+    while not ready.exists() and time.monotonic() - t0 < 30:
+        time.sleep(0.05)
+    assert ready.exists()
+    engine._abandon(pool, grace_s=0.5)
+    _assert_ended(procs)
 
 
 def test_a_later_step_tries_only_what_improved_the_step_before():
