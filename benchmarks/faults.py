@@ -15,7 +15,8 @@ one; 0 lost samples; status aborted with a reason naming the fault.
 after a writer failure, in the writer's unsaved-samples file that continues it
 (``samples_kept_in`` says where they are);
 for the killed host, the drive's control cycles in OPERATION ENABLED minus the 300 zeroing
-cycles minus the file's samples (±1: the finalizer's zero-torque SYNC is one more cycle).
+cycles minus the file's samples, less one cycle that is never a sample (``extra_cycle``): the
+finalizer's zero-torque SYNC, or the cycle the kill cut short.
 """
 
 from __future__ import annotations
@@ -221,8 +222,15 @@ def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None)
             kept_in = f"session file + {writer.unsaved_file.name} in {writer.unsaved_file.parent}"
     if disk is not None:
         disk.close()
+    extra_cycle = None
     if where == "kill" or loop_samples is None:
-        lost = (syncs1 - syncs0) - round(ZEROING_S * 1000) - n_file
+        # At most one cycle more than samples, and never a recorded one: the finalizer's
+        # zero-torque SYNC after a trial the loop ended itself, or the cycle a kill landed in
+        # (its SYNC went out, its sample was never complete; measured: the shared ring then
+        # holds exactly the file's samples).
+        cycles = (syncs1 - syncs0) - round(ZEROING_S * 1000)
+        extra_cycle = cycles == n_file + 1
+        lost = cycles - n_file - int(extra_cycle)
     else:
         lost = loop_samples - n_file - n_unsaved
     zero_ms = None
@@ -248,6 +256,7 @@ def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None)
         "unsaved_samples": n_unsaved,
         "torque_before_nm": info.get("torque_before_nm"),
         "drive_state_after": st["state"],
+        "extra_cycle": extra_cycle,
     }
 
 

@@ -11,7 +11,8 @@ in its own process (python-can's virtual bus), for tests.
 :class:`ProcessLoop` is the engine's :class:`protocols.engine.TrialLoop` for a real-time rig. The
 control loop runs in a separate process, so the session file writer and the GUI, which run in
 the engine's process, never hold it up (Python runs one thread at a time per process). Blocks of
-samples come back through a queue; pause, abort and the emergency stop go the other way, the
+samples come back through a pipe that the loop process's death cannot leave half-read
+(:mod:`hardware.messages`); pause, abort and the emergency stop go the other way, the
 emergency stop through a shared event that the loop checks every cycle.
 """
 
@@ -40,6 +41,7 @@ from steerlab.hardware.can import (
 )
 from steerlab.hardware.glove.unit import SerialGloveUnit
 from steerlab.hardware.loop import DEFAULT_BLOCK_S, LOOP_CHANNELS, SPIN_S, DeviceLoop
+from steerlab.hardware.messages import Outbox, WriterGone, message_pipe
 from steerlab.hardware.rig import RigConfig, load_rig
 from steerlab.protocols.engine import LoopControl, TrialFault
 from steerlab.protocols.session import TrialSetup
@@ -340,8 +342,16 @@ class SampleRing:
 
 
 def _worker(
-    rig, subject_number: int, conn, out: mp.Queue, estop, block_s: float, ring=None, lab=None
+    rig, subject_number: int, conn, out_end, estop, block_s: float, ring=None, lab=None
 ) -> None:
+    out = Outbox(out_end)
+    try:
+        _serve(rig, subject_number, conn, out, estop, block_s, ring, lab)
+    finally:
+        out.close()  # what is queued reaches the engine before the process ends
+
+
+def _serve(rig, subject_number: int, conn, out: Outbox, estop, block_s: float, ring, lab) -> None:
     from steerlab.hardware.realtime import tune_process
     from steerlab.hardware.safety import warm_up
 
@@ -500,7 +510,7 @@ class ProcessLoop:
         self._estop = ctx.Event()
         self._ring = SampleRing(ctx)
         self._conn, child = ctx.Pipe()
-        self._q: mp.Queue = ctx.Queue()
+        self._inbox, out_end = message_pipe(ctx)
         self._stats: dict = {}
         self._delivered = 0
         self._unhanded: list[dict] = []
@@ -514,7 +524,7 @@ class ProcessLoop:
                 rig,
                 subject_number,
                 child,
-                self._q,
+                out_end,
                 self._estop,
                 block_s,
                 self._ring,
@@ -527,11 +537,17 @@ class ProcessLoop:
 
         with single_threaded_math_for_children():
             self._proc.start()
+        self._inbox.started()
         try:
-            kind, payload = self._q.get(timeout=start_timeout_s)
+            kind, payload = self._inbox.get(timeout=start_timeout_s)
         except queue.Empty:
             self.close()
             raise RigError(f"the rig did not come up within {start_timeout_s:.0f} s") from None
+        except WriterGone:
+            self.close()
+            raise RigError(
+                f"the loop process ended before the rig came up (exit code {self._proc.exitcode})"
+            ) from None
         if kind == "error":
             self._proc.join(5)
             raise RigError(f"the rig could not be brought up: {payload}")
@@ -569,17 +585,18 @@ class ProcessLoop:
         try:
             while True:
                 try:
-                    kind, payload = self._q.get(timeout=0.1)
-                except queue.Empty:
-                    if not self._proc.is_alive():
-                        # What it took but never handed over is in the shared ring.
-                        rest = self._ring.since(self._delivered)
-                        if rest is not None:
-                            yield rest
-                        raise TrialFault(
-                            f"the live loop process died (exit code {self._proc.exitcode})"
-                        ) from None
-                    continue
+                    kind, payload = self._inbox.get(timeout=0.1)
+                except (queue.Empty, WriterGone) as e:
+                    if isinstance(e, queue.Empty) and self._proc.is_alive():
+                        continue
+                    self._proc.join(1.0)  # its pipe ends a moment before it is reaped
+                    # What it took but never handed over is in the shared ring.
+                    rest = self._ring.since(self._delivered)
+                    if rest is not None:
+                        yield rest
+                    raise TrialFault(
+                        f"the live loop process died (exit code {self._proc.exitcode})"
+                    ) from None
                 if kind == "block":
                     self._delivered += len(payload["time_s"])
                     yield payload
@@ -612,9 +629,9 @@ class ProcessLoop:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:  # its remaining blocks, then its end
             try:
-                kind, payload = self._q.get(timeout=0.1)
-            except queue.Empty:
-                if not self._proc.is_alive():
+                kind, payload = self._inbox.get(timeout=0.1)
+            except (queue.Empty, WriterGone) as e:
+                if isinstance(e, WriterGone) or not self._proc.is_alive():
                     rest = self._ring.since(self._delivered)
                     if rest is not None:
                         self._unhanded.append(rest)
@@ -657,5 +674,6 @@ class ProcessLoop:
         if self._proc.is_alive():
             self._proc.terminate()
             self._proc.join(5)
+        self._inbox.close()
         if self.lab is not None:
             self.lab.close()
