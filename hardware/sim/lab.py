@@ -30,6 +30,7 @@ import json
 import os
 import re
 import secrets
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -233,6 +234,18 @@ class SimulatedLab:
                 closer()
             except Exception:
                 pass
+        if listener is not None:
+            _remove_control_folder(listener.address)
+
+
+def _remove_control_folder(address: str | None) -> None:
+    """The private folder :meth:`SimulatedLab.serve` made for its socket, once it is closed
+    (hundreds of them had gathered in /tmp from test runs)."""
+    if not address:
+        return
+    folder = os.path.dirname(address)
+    if os.path.basename(folder).startswith("steerlab-lab-"):
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 class LabClient:
@@ -413,6 +426,8 @@ class LabProcess:
                 f.close()
             except OSError:
                 pass
+        # A lab that was killed left its socket's folder behind.
+        _remove_control_folder(getattr(self, "control_address", None))
 
     def __enter__(self) -> LabProcess:
         return self

@@ -110,6 +110,18 @@ def test_a_full_collection_in_the_lab_is_short_with_a_subjects_world():
     assert min(times) < 5.0, times
 
 
+@pytest.mark.parametrize("ending", ["closed", "killed"])
+def test_a_lab_leaves_no_control_folder_behind(ending):
+    lab = LabProcess(subject=1)
+    folder = os.path.dirname(lab.control_address)
+    assert os.path.isdir(folder)
+    if ending == "killed":
+        lab.proc.kill()
+        lab.proc.wait(10)
+    lab.close()
+    assert not os.path.exists(folder)
+
+
 def test_the_fault_benchmark_measures_at_the_drive(tmp_path):
     """One row of ``python -m benchmarks faults`` (EMCY: the drive faults, torque off at once)."""
     from steerlab.benchmarks.faults import FAULTS, run_fault
