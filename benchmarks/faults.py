@@ -15,8 +15,9 @@ one; 0 lost samples; status aborted with a reason naming the fault.
 after a writer failure, in the writer's unsaved-samples file that continues it
 (``samples_kept_in`` says where they are);
 for the killed host, the drive's control cycles in OPERATION ENABLED minus the 300 zeroing
-cycles minus the file's samples, less one cycle that is never a sample (``extra_cycle``): the
-finalizer's zero-torque SYNC, or the cycle the kill cut short.
+cycles minus the file's samples, less one cycle that was never a sample (``extra_cycle``: the
+finalizer's zero-torque SYNC, or the cycle the kill cut short, whose sample the loop's own
+count never reached).
 """
 
 from __future__ import annotations
@@ -199,6 +200,7 @@ def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None)
         if writer.first_failure is not None:
             info.setdefault("t", writer.first_failure)
         loop_samples = loop.trial_stats().get("samples")
+        completed = loop.samples_completed
         t_inject = info.get("t", loop.injected.get(what))
     finally:
         loop.close()
@@ -224,12 +226,12 @@ def run_fault(name, where, what, pattern, timeout_kind, tmp: Path, stall_s=None)
         disk.close()
     extra_cycle = None
     if where == "kill" or loop_samples is None:
-        # At most one cycle more than samples, and never a recorded one: the finalizer's
+        # At most one cycle more than samples that was never a sample: the finalizer's
         # zero-torque SYNC after a trial the loop ended itself, or the cycle a kill landed in
-        # (its SYNC went out, its sample was never complete; measured: the shared ring then
-        # holds exactly the file's samples).
+        # (its SYNC went out, its sample never completed: the loop's own count of completed
+        # samples, in shared memory, is then the file's).
         cycles = (syncs1 - syncs0) - round(ZEROING_S * 1000)
-        extra_cycle = cycles == n_file + 1
+        extra_cycle = cycles == n_file + 1 and completed == n_file
         lost = cycles - n_file - int(extra_cycle)
     else:
         lost = loop_samples - n_file - n_unsaved

@@ -535,8 +535,12 @@ class ProcessLoop:
         )
         from steerlab.hardware.realtime import single_threaded_math_for_children
 
-        with single_threaded_math_for_children():
-            self._proc.start()
+        try:
+            with single_threaded_math_for_children():
+                self._proc.start()
+        except BaseException:
+            self._inbox.close()
+            raise
         self._inbox.started()
         try:
             kind, payload = self._inbox.get(timeout=start_timeout_s)
@@ -570,6 +574,12 @@ class ProcessLoop:
     def trial_stats(self) -> dict:
         return dict(self._stats)
 
+    @property
+    def samples_completed(self) -> int:
+        """Samples of this trial the loop completed, as its shared ring counts them (read even
+        after the loop process died)."""
+        return int(self._ring.count.value)
+
     def run_trial(self, setup: TrialSetup, control: LoopControl) -> Iterator[dict]:
         self._estop.clear()
         self._stats = {}
@@ -583,16 +593,24 @@ class ProcessLoop:
         forwarder.start()
         ended = False
         try:
+            dead_since = None
             while True:
                 try:
                     kind, payload = self._inbox.get(timeout=0.1)
                 except (queue.Empty, WriterGone) as e:
-                    if isinstance(e, queue.Empty) and self._proc.is_alive():
-                        continue
+                    if isinstance(e, queue.Empty):
+                        if self._proc.is_alive():
+                            continue
+                        # Dead: what it sent whole is still being read (a starved reading
+                        # thread); its end of file says when that is done.
+                        dead_since = dead_since or time.monotonic()
+                        if time.monotonic() - dead_since < 1.0:
+                            continue
                     self._proc.join(1.0)  # its pipe ends a moment before it is reaped
                     # What it took but never handed over is in the shared ring.
                     rest = self._ring.since(self._delivered)
                     if rest is not None:
+                        self._delivered += len(rest["time_s"])
                         yield rest
                     raise TrialFault(
                         f"the live loop process died (exit code {self._proc.exitcode})"
@@ -635,6 +653,7 @@ class ProcessLoop:
                     rest = self._ring.since(self._delivered)
                     if rest is not None:
                         self._unhanded.append(rest)
+                        self._delivered += len(rest["time_s"])
                     return
                 continue
             if kind == "block":
@@ -673,6 +692,9 @@ class ProcessLoop:
         self._proc.join(10)
         if self._proc.is_alive():
             self._proc.terminate()
+            self._proc.join(5)
+        if self._proc.is_alive():
+            self._proc.kill()
             self._proc.join(5)
         self._inbox.close()
         if self.lab is not None:

@@ -27,6 +27,11 @@ _GONE = object()
 _END = object()
 
 
+class _Failed:
+    def __init__(self, error: BaseException) -> None:
+        self.error = error
+
+
 class WriterGone(EOFError):
     """The sending process closed its end or died; every whole message it sent was read."""
 
@@ -62,17 +67,23 @@ class Inbox:
             except (EOFError, OSError):  # a message cut short reads as EOF too
                 self._q.put(_GONE)
                 return
+            except BaseException as e:  # one that cannot be unpickled: raised by get(), there
+                self._q.put(_Failed(e))
+                continue
             self._q.put(msg)
 
     def get(self, timeout: float | None = None):
         """The next message; ``queue.Empty`` after ``timeout`` s without one, :class:`WriterGone`
-        once the writer is gone and all it sent whole has been taken."""
+        once the writer is gone and all it sent whole has been taken; a message that could not
+        be unpickled raises its error here, in order, and the messages after it still come."""
         if self._gone:
             raise WriterGone
         msg = self._q.get(timeout=timeout)
         if msg is _GONE:
             self._gone = True
             raise WriterGone
+        if isinstance(msg, _Failed):
+            raise msg.error
         return msg
 
     def close(self) -> None:

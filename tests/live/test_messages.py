@@ -20,20 +20,23 @@ from steerlab.hardware.messages import Inbox, Outbox, WriterGone, message_pipe
 CTX = mp.get_context("spawn")
 
 
-def _half_message_then_sleep(end) -> None:
+def _half_message_then_sleep(end, written) -> None:
     out = Outbox(end)
     out.put(("block", np.arange(5.0)))
     out.put(("status", {"ok": True}))
     time.sleep(0.5)  # both written whole
     os.write(end.fileno(), struct.pack("!i", 1_000_000) + b"x" * 1000)
+    written.set()
     time.sleep(60)
 
 
 def _start(target):
     inbox, end = message_pipe(CTX)
-    proc = CTX.Process(target=target, args=(end,), daemon=True)
+    written = CTX.Event()
+    proc = CTX.Process(target=target, args=(end, written), daemon=True)
     proc.start()
     inbox.started()
+    assert written.wait(30)
     return inbox, proc
 
 
@@ -43,8 +46,7 @@ def test_a_writer_killed_mid_message_reads_as_gone_after_its_whole_messages():
         kind, block = inbox.get(timeout=30)
         assert kind == "block" and np.array_equal(block, np.arange(5.0))
         assert inbox.get(timeout=10) == ("status", {"ok": True})
-        time.sleep(1.0)  # the half message is in the pipe now
-        os.kill(proc.pid, signal.SIGKILL)
+        os.kill(proc.pid, signal.SIGKILL)  # the half message is in the pipe
         t0 = time.monotonic()
         with pytest.raises(WriterGone):
             while time.monotonic() - t0 < 10:
@@ -66,7 +68,6 @@ def test_a_live_writer_mid_message_never_holds_get_past_its_timeout():
     try:
         inbox.get(timeout=30)
         inbox.get(timeout=10)
-        time.sleep(1.0)
         t0 = time.monotonic()
         with pytest.raises(queue.Empty):
             inbox.get(timeout=0.2)
@@ -77,8 +78,9 @@ def test_a_live_writer_mid_message_never_holds_get_past_its_timeout():
         inbox.close()
 
 
-def _put_much_then_close(end) -> None:
+def _put_much_then_close(end, putting) -> None:
     out = Outbox(end)
+    putting.set()
     t0 = time.monotonic()
     for i in range(200):  # 200 × 80 kB: far more than a pipe holds, nobody reading yet
         out.put(("block", np.full(10_000, float(i))))
@@ -90,16 +92,18 @@ def _put_much_then_close(end) -> None:
 def test_put_never_waits_for_the_reader_and_close_delivers_everything():
     # A raw pipe nobody reads for 2 s: a put that wrote to the pipe itself would wait for it.
     reader, end = CTX.Pipe(duplex=False)
-    proc = CTX.Process(target=_put_much_then_close, args=(end,), daemon=True)
+    putting = CTX.Event()
+    proc = CTX.Process(target=_put_much_then_close, args=(end, putting), daemon=True)
     proc.start()
     end.close()
     try:
+        assert putting.wait(30)
         time.sleep(2.0)
         inbox = Inbox(reader)
         got = [inbox.get(timeout=30) for _ in range(201)]
         assert [float(b[1][0]) for b in got[:200]] == [float(i) for i in range(200)]
         kind, took = got[200]
-        assert kind == "took" and took < 1.0
+        assert kind == "took" and took < 1.0  # a put that wrote to the pipe: ≥ 2 s
         proc.join(10)
         assert proc.exitcode == 0
         with pytest.raises(WriterGone):
@@ -107,3 +111,40 @@ def test_put_never_waits_for_the_reader_and_close_delivers_everything():
         inbox.close()
     finally:
         proc.kill()
+
+
+class _Unloadable:
+    """Pickles, but cannot be unpickled (as a message from a newer loop might not be)."""
+
+    def __reduce__(self):
+        return (_refuse, ())
+
+
+def _refuse():
+    raise ValueError("cannot be rebuilt here")
+
+
+def _send_unloadable_between(end) -> None:
+    out = Outbox(end)
+    out.put(("block", 1))
+    out.put(("bad", _Unloadable()))
+    out.put(("end", 2))
+    out.close()
+
+
+def test_a_message_that_cannot_be_unpickled_raises_in_order_and_the_rest_still_comes():
+    inbox, end = message_pipe(CTX)
+    proc = CTX.Process(target=_send_unloadable_between, args=(end,), daemon=True)
+    proc.start()
+    inbox.started()
+    try:
+        assert inbox.get(timeout=30) == ("block", 1)
+        with pytest.raises(ValueError, match="cannot be rebuilt"):
+            inbox.get(timeout=10)
+        assert inbox.get(timeout=10) == ("end", 2)
+        with pytest.raises(WriterGone):
+            inbox.get(timeout=10)
+    finally:
+        proc.kill()
+        proc.join(5)
+        inbox.close()

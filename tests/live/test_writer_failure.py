@@ -76,25 +76,31 @@ def _motor_off(devices):
     assert devices.node.target_torque_permille == 0
 
 
-def test_disk_filled_mid_trial(devices, short_protocol, tiny_disk):
-    loop = devices.device_loop()
-    path = tiny_disk / "S02.h5"
-
+def test_disk_filled_mid_trial(devices, rig_config, short_protocol, tiny_disk, tmp_path):
     def fill(_writer):  # another program fills the disk
         free = shutil.disk_usage(tiny_disk).free
         with open(tiny_disk / "filler", "wb") as f:
             f.write(b"\0" * (free - 1_000_000))
 
-    state, (end,), emitted, writer, _ = _session(loop, short_protocol, path, fill)
-    assert state is State.IDLE and end.status == "aborted"
-    assert "session writer failed" in end.reason and "disk full" in end.reason
-    assert "below the writer's reserve" in end.reason
-    _motor_off(devices)
-    # The loop stopped at the block the writer refused, and the file holds every sample, that
-    # block's too (the writer failed on it, before the subscribers after it saw it).
-    (r,) = SessionFile(path).records()
-    assert r.status == "aborted" and "disk full" in r.abort_reason
-    assert r.n_samples == loop.trial_stats()["samples"] == emitted + 50 >= 1500
+    def run(rig, _where):
+        for leftover in tiny_disk.iterdir():  # a starved attempt's file and filler
+            leftover.unlink()
+        loop = rig.device_loop()
+        path = tiny_disk / "S02.h5"
+        state, ends, emitted, _writer, _ = _session(loop, short_protocol, path, fill)
+        return state, ends, emitted, path, loop
+
+    with on_fresh_rigs(devices, rig_config, tmp_path, run) as (result, rig):
+        state, (end,), emitted, path, loop = result
+        assert state is State.IDLE and end.status == "aborted"
+        assert "session writer failed" in end.reason and "disk full" in end.reason
+        assert "below the writer's reserve" in end.reason
+        _motor_off(rig)
+        # The loop stopped at the block the writer refused, and the file holds every sample,
+        # that block's too (the writer failed on it, before the subscribers after it saw it).
+        (r,) = SessionFile(path).records()
+        assert r.status == "aborted" and "disk full" in r.abort_reason
+        assert r.n_samples == loop.trial_stats()["samples"] == emitted + 50 >= 1500
 
 
 def _runner(protocol, inject):
