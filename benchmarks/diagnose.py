@@ -210,8 +210,20 @@ def main(argv: list[str]) -> dict:
     ap.add_argument("--jobs", type=int, default=1, help="studies diagnosed in parallel")
     ap.add_argument("--scheduler", help="Dask scheduler address, or local[:N] (studies on Dask)")
     ap.add_argument("--only", nargs="*", help="mechanisms to run (default: all)")
-    ap.add_argument("--out", help="also write every case's result to this JSON file")
+    ap.add_argument(
+        "--out",
+        help="also write every case's result to this JSON file (or a folder's diagnose.json)",
+    )
     a = ap.parse_args(argv)
+    if a.out:
+        # Before the run, not after its first study: a folder given here once cost a whole
+        # run's results (the error came at the first write, the pool then finished every study).
+        if Path(a.out).is_dir():
+            a.out = str(Path(a.out) / "diagnose.json")
+        try:
+            Path(a.out).write_text("[]")
+        except OSError as e:
+            ap.error(f"--out {a.out}: cannot write there ({e})")
     grid = QUICK_GRID if a.quick else GRID
     seeds = a.seeds or (3 if a.quick else 5)
     nulls = a.nulls if a.nulls is not None else (8 if a.quick else 20)

@@ -103,11 +103,13 @@ def starved(recs) -> bool:
 
 
 @contextmanager
-def on_fresh_rigs(devices, rig_config, tmp_path, session, attempts: int = 3):
+def on_fresh_rigs(devices, rig_config, tmp_path, session, attempts: int = 3, is_starved=None):
     """``session(devices, directory) -> (state, recs, ...)``, run again on a fresh rig (one drive
     node on the bus at a time) while its trials were aborted only because the process was
-    starved. Yields the last result and its rig; a fresh rig is closed on leaving (``devices``
-    stays the fixture's to close)."""
+    starved (``is_starved(result)``, default: :func:`starved` of its records). Yields the last
+    result and its rig; a fresh rig is closed on leaving (``devices`` stays the fixture's to
+    close)."""
+    is_starved = is_starved or (lambda result: starved(result[1]))
     from steerlab.hardware.live import RigDevices
 
     rig = devices
@@ -116,7 +118,7 @@ def on_fresh_rigs(devices, rig_config, tmp_path, session, attempts: int = 3):
             directory = tmp_path / f"attempt{attempt}"
             directory.mkdir()
             result = session(rig, directory)
-            if not starved(result[1]) or attempt == attempts - 1:
+            if not is_starved(result) or attempt == attempts - 1:
                 break
             rig.close()
             rig = RigDevices(rig_config, subject_number=2)

@@ -3,6 +3,7 @@ with every fault injected at the transport or the device, and the safety rules."
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from dataclasses import replace
@@ -16,7 +17,7 @@ from steerlab.protocols.datafile import SessionFile, SessionWriter
 from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.session import build_plan
 from tests.hardware.can_wire import wait_for
-from tests.live.conftest import SHORT_TRIAL_SAMPLES, on_fresh_rigs
+from tests.live.conftest import SHORT_TRIAL_SAMPLES, on_fresh_rigs, starved
 
 
 def _session(devices, protocol, tmp_path, loop: DeviceLoop | None = None, inject=None, at_s=1.5):
@@ -92,22 +93,36 @@ FAULTS = {
 
 @pytest.mark.parametrize("fault", list(FAULTS))
 def test_each_fault_aborts_the_trial_keeps_samples_and_stops_the_motor(
-    devices, short_protocol, tmp_path, fault
+    devices, rig_config, short_protocol, tmp_path, fault
 ):
     inject, reason = FAULTS[fault]
-    estop = threading.Event()
-    loop = devices.device_loop(estop=estop)
-    t_inject = []
 
-    def do():
-        t_inject.append(time.monotonic())
-        inject(devices, loop)
+    def session(rig, where):
+        loop = rig.device_loop(estop=threading.Event())
+        t_inject = []
 
-    state, recs, seen = _session(devices, short_protocol, tmp_path, loop=loop, inject=do)
+        def do():
+            t_inject.append(time.monotonic())
+            inject(rig, loop)
+
+        return (*_session(rig, short_protocol, where, loop=loop, inject=do), loop, t_inject)
+
+    def starved_first(result):  # the host starved by the load, before the fault could act
+        recs, t_inject = result[1], result[-1]
+        return starved(recs) and (
+            not t_inject or not any(re.search(reason, r.abort_reason or "") for r in recs)
+        )
+
+    runs = on_fresh_rigs(devices, rig_config, tmp_path, session, is_starved=starved_first)
+    with runs as (result, rig):
+        _check_fault_outcome(rig, fault, reason, *result)
+
+
+def _check_fault_outcome(devices, fault, reason, state, recs, seen, loop, t_inject) -> None:
     assert state is State.IDLE
     (r,) = recs
     assert r.status == "aborted"
-    assert r.abort_reason and __import__("re").search(reason, r.abort_reason), r.abort_reason
+    assert r.abort_reason and re.search(reason, r.abort_reason), r.abort_reason
     # Every sample the loop produced is in the file, up to the fault.
     emitted = sum(e.n for e in seen if isinstance(e, ev.SamplesAcquired))
     assert r.n_samples == emitted >= 1500
