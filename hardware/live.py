@@ -607,10 +607,8 @@ class ProcessLoop:
                         if time.monotonic() - dead_since < 1.0:
                             continue
                     self._proc.join(1.0)  # its pipe ends a moment before it is reaped
-                    # What it took but never handed over is in the shared ring.
-                    rest = self._ring.since(self._delivered)
+                    rest = self._undelivered()
                     if rest is not None:
-                        self._delivered += len(rest["time_s"])
                         yield rest
                     raise TrialFault(
                         f"the live loop process died (exit code {self._proc.exitcode})"
@@ -650,10 +648,9 @@ class ProcessLoop:
                 kind, payload = self._inbox.get(timeout=0.1)
             except (queue.Empty, WriterGone) as e:
                 if isinstance(e, WriterGone) or not self._proc.is_alive():
-                    rest = self._ring.since(self._delivered)
+                    rest = self._undelivered()
                     if rest is not None:
                         self._unhanded.append(rest)
-                        self._delivered += len(rest["time_s"])
                     return
                 continue
             if kind == "block":
@@ -664,6 +661,14 @@ class ProcessLoop:
                 self._stats = payload["stats"]
                 self.status = payload["status"]
                 return
+
+    def _undelivered(self) -> dict | None:
+        """What a dead loop took but never handed over (the shared ring's samples after the
+        last delivered), counted as delivered from now on: handed over once."""
+        rest = self._ring.since(self._delivered)
+        if rest is not None:
+            self._delivered += len(rest["time_s"])
+        return rest
 
     def take_unhanded(self) -> list[dict]:
         """The blocks the loop recorded after the engine let go of the trial (it stops at its

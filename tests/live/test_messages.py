@@ -11,6 +11,7 @@ import queue
 import signal
 import struct
 import time
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -30,19 +31,32 @@ def _half_message_then_sleep(end, written) -> None:
     time.sleep(60)
 
 
-def _start(target):
+@contextmanager
+def _writer(target, *args):
+    """A spawned process running ``target(end, *args)`` on the write end of an Inbox's pipe;
+    killed, and the inbox closed, on leaving."""
     inbox, end = message_pipe(CTX)
-    written = CTX.Event()
-    proc = CTX.Process(target=target, args=(end, written), daemon=True)
+    proc = CTX.Process(target=target, args=(end, *args), daemon=True)
     proc.start()
     inbox.started()
-    assert written.wait(30)
-    return inbox, proc
+    try:
+        yield inbox, proc
+    finally:
+        proc.kill()
+        proc.join(5)
+        inbox.close()
+
+
+@contextmanager
+def _half_message_written():
+    written = CTX.Event()
+    with _writer(_half_message_then_sleep, written) as (inbox, proc):
+        assert written.wait(30)
+        yield inbox, proc
 
 
 def test_a_writer_killed_mid_message_reads_as_gone_after_its_whole_messages():
-    inbox, proc = _start(_half_message_then_sleep)
-    try:
+    with _half_message_written() as (inbox, proc):
         kind, block = inbox.get(timeout=30)
         assert kind == "block" and np.array_equal(block, np.arange(5.0))
         assert inbox.get(timeout=10) == ("status", {"ok": True})
@@ -57,25 +71,16 @@ def test_a_writer_killed_mid_message_reads_as_gone_after_its_whole_messages():
         assert time.monotonic() - t0 < 10
         with pytest.raises(WriterGone):  # and stays gone
             inbox.get(timeout=0.1)
-    finally:
-        proc.kill()
-        proc.join(5)
-        inbox.close()
 
 
 def test_a_live_writer_mid_message_never_holds_get_past_its_timeout():
-    inbox, proc = _start(_half_message_then_sleep)
-    try:
+    with _half_message_written() as (inbox, _proc):
         inbox.get(timeout=30)
         inbox.get(timeout=10)
         t0 = time.monotonic()
         with pytest.raises(queue.Empty):
             inbox.get(timeout=0.2)
         assert time.monotonic() - t0 < 2.0
-    finally:
-        proc.kill()
-        proc.join(5)
-        inbox.close()
 
 
 def _put_much_then_close(end, putting) -> None:
@@ -133,18 +138,10 @@ def _send_unloadable_between(end) -> None:
 
 
 def test_a_message_that_cannot_be_unpickled_raises_in_order_and_the_rest_still_comes():
-    inbox, end = message_pipe(CTX)
-    proc = CTX.Process(target=_send_unloadable_between, args=(end,), daemon=True)
-    proc.start()
-    inbox.started()
-    try:
+    with _writer(_send_unloadable_between) as (inbox, _proc):
         assert inbox.get(timeout=30) == ("block", 1)
         with pytest.raises(ValueError, match="cannot be rebuilt"):
             inbox.get(timeout=10)
         assert inbox.get(timeout=10) == ("end", 2)
         with pytest.raises(WriterGone):
             inbox.get(timeout=10)
-    finally:
-        proc.kill()
-        proc.join(5)
-        inbox.close()
