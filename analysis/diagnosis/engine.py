@@ -46,11 +46,12 @@ import math
 import multiprocessing.connection as mp_connection
 import time
 from collections.abc import Callable, Sequence
-from contextlib import AbstractContextManager, nullcontext
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from steerlab.analysis.diagnosis.candidates import CANDIDATES, Candidate, candidate
 from steerlab.analysis.diagnosis.data import FALLBACK_ARM, PreparedStudy, TrialData, with_inertia
@@ -723,14 +724,11 @@ def _limit_threads() -> AbstractContextManager:
     """One BLAS thread while in effect (as a context manager; called bare, for good).
 
     Tiny matrices everywhere (the world's 7×7 matrix exponential per trial): BLAS threads only
-    add overhead, 70× for expm on a loaded 2-core machine.
+    add overhead, 70× for expm on a loaded 2-core machine. threadpoolctl is a dependency, not
+    an option: without it (an install without the test extras, as the README's first command
+    made) the independent world's studies took 4 × the CPU seconds.
     """
-    try:
-        from threadpoolctl import threadpool_limits
-
-        return threadpool_limits(1)
-    except ImportError:  # optional: only speed depends on it
-        return nullcontext()
+    return threadpool_limits(1)
 
 
 def _worker_eval(
