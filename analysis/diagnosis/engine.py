@@ -23,6 +23,11 @@ Greedy forward selection (:func:`select`)
       The one with the largest in-sample gain is tried first, and one whose in-sample gain is
       below a quarter of that one's held-out gain (if it can be retained) is not tried either
       (:func:`_held_out_stage`).
+    - The linear families (reflex, lag, sensor delay) are fitted first. A family that must be
+      simulated gets its best form's full fit only where its forms' screening gained at least
+      1/``FULL_FIT_RATIO`` of the best linear family's gain (far from the noise floor only);
+      else its screening stands, and it is fitted fully if the held-out stage could still
+      choose it.
 
     A candidate is retained when its ΔBIC < −``MIN_DBIC``, its held-out gain
     > ``MIN_HELD_OUT``, and its parameters stand out from zero by more than ``MIN_ROBUST_Z``
@@ -47,7 +52,7 @@ import multiprocessing.connection as mp_connection
 import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -72,6 +77,7 @@ from steerlab.analysis.diagnosis.simulate import (
     reconstruct_remnant,
     simulated_spectra,
 )
+from steerlab.analysis.diagnosis.steady_state import is_linear_time_invariant
 from steerlab.analysis.executors import pool_cpu_clock, share, shared_value, sharing_pool
 from steerlab.hardware.safety import SafetyLimits
 from steerlab.hardware.sim.mechanisms import Mechanisms
@@ -100,6 +106,18 @@ RETRY_MIN_DELTA_M2LL = 6.0
 # another of its step, which can be retained, is not tried on held-out data: held-out gains
 # were at most 1.8 × the in-sample ones (_held_out_stage).
 HELD_OUT_SKIP_RATIO = 4.0
+# A family that must be simulated (friction, stiffening, the grip map) gets its best form's
+# full fit only where its forms' screening gained at least 1/FULL_FIT_RATIO of what the step's
+# best linear family (reflex, lag, sensor delay: fitted first) gained, and only far from the
+# noise floor (that fraction at least FULL_FIT_MIN_M2LL); else its screening stands as its
+# fit, and it is fitted fully only if the held-out stage could still choose it
+# (_held_out_stage). On the independent world's studies a full fit gained at most 2.3 × its
+# screening, and held-out gains were 0.54–1.8 × the in-sample ones: below 1/20 of a leader
+# that can be retained, such a candidate is not tried on held-out data, fitted fully or not,
+# so it cannot be retained. One whose screening gains no more than RETRY_MIN_DELTA_M2LL is
+# fitted fully all the same: whether a later step retries it depends on its full gain.
+FULL_FIT_RATIO = 20.0
+FULL_FIT_MIN_M2LL = 1000.0
 K_REMNANT_SELECT = 1  # remnant realisations (± pairs) while screening candidates …
 K_REMNANT_FINAL = 8  # … and for the retained model's parameters (see simulate.py)
 # Time limit of the candidate stage (s): CPU seconds of the diagnosing process and of its own
@@ -440,6 +458,9 @@ class CandidateResult:
     only_first_form: bool = False
     # Passed on BIC, but the time limit came before its held-out check.
     held_out_undone: bool = False
+    # Fitted only as far as its forms' screening: its gain was below this, 1/FULL_FIT_RATIO
+    # of the step's best linear family's (see evaluate_candidate); None: fitted fully.
+    full_fit_skipped: float | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -457,6 +478,7 @@ class CandidateResult:
             "passed": self.passed,
             "reason": self.reason,
             "held_out_not_tried_below": self.held_out_skipped,
+            "full_fit_not_done_below": self.full_fit_skipped,
             "only_first_step_form": self.only_first_form,
             "equally_good": self.equally_good,
             "iterations": self.fit.iterations,
@@ -530,12 +552,26 @@ def _consistent(form_m2ll: dict[str, float]) -> list[str]:
     return [f for f in ranked if form_m2ll[f] - best <= FORM_CONSISTENT_M2LL]
 
 
+def is_linear_family(name: str) -> bool:
+    """Whether every form of the family ``name`` keeps the loop linear and time-invariant:
+    added to a linear model, its fits take the bin route and cost a fraction of a simulated
+    family's."""
+    family = candidate(name)
+    for form in family.forms:
+        spec = ModelSpec(Mechanisms(), (family.with_form(form),), 250.0)
+        on = spec.clip(spec.start() + [p.step for p in spec.specs()])  # every parameter ≠ 0
+        if not is_linear_time_invariant(spec.mechanisms(on)):
+            return False
+    return True
+
+
 def evaluate_candidate(
     setup: Setup,
     current: Current,
     name: str,
     step: int,
     first_form: str | None = None,
+    full_fit_below: float | None = None,
 ) -> CandidateResult:
     """The family ``name`` added to the current model: each of its forms fitted on all trials,
     the best by −2 log L as the family's candidate, with its ΔBIC (its held-out folds come
@@ -543,12 +579,15 @@ def evaluate_candidate(
     baseline already has (a model file's) is re-fitted in the form it has. ``first_form``:
     the form that fitted best at the first step (later steps): screened first, and when it
     improves nothing (less than :data:`RETRY_MIN_DELTA_M2LL`) the other forms are not
-    screened."""
+    screened. ``full_fit_below``: a family of several forms whose best screening gains less
+    than this (and more than :data:`RETRY_MIN_DELTA_M2LL`) is not fitted fully
+    (:data:`FULL_FIT_RATIO`; :func:`complete_full_fit` does it where it is needed)."""
     family = candidate(name)
     forms = (
         (family.form_of(current.spec.base),) if family.is_on(current.spec.base) else family.forms
     )
     only_first = False
+    skipped = None
     if len(forms) == 1:
         fit, form, form_m2ll = _fit_form(setup, current, family.with_form(forms[0])), forms[0], {}
     else:
@@ -569,23 +608,61 @@ def evaluate_candidate(
                 for f in order[1:]
             ]
         form_m2ll = {f.name: r.m2ll for r, f in fits}
-        screened, form = min(fits, key=lambda pair: pair[0].m2ll)
-        fit = fit_model(setup.trials, screened.spec, setup.noise, screened.arms, x0=screened.x)
-        # The full fit can walk into a corner its screening did not reach: the independent
-        # world's second-order lag ended with three trials' arms at bounds, 1 000 units of
-        # −2 log L above the fit from plausible arms, and every candidate of the next step,
-        # started from those, "improved" on it by as much (and went to its held-out folds).
-        fit = _out_of_corners(setup.trials, screened.spec, setup.noise, fit, {})
-        form_m2ll[form.name] = fit.m2ll
+        fit, form = min(fits, key=lambda pair: pair[0].m2ll)
+        gain = current.fit.m2ll - fit.m2ll
+        if full_fit_below is not None and RETRY_MIN_DELTA_M2LL < gain < full_fit_below:
+            skipped = full_fit_below
+        else:
+            fit = _full_fit(setup, fit)
+            form_m2ll[form.name] = fit.m2ll
+    return _candidate_result(
+        current, name, step, fit, len(forms), form.name, form_m2ll, only_first, skipped
+    )
+
+
+def _full_fit(setup: Setup, screened: FitResult) -> FitResult:
+    """The full fit of a family's best screened form, from its screening."""
+    fit = fit_model(setup.trials, screened.spec, setup.noise, screened.arms, x0=screened.x)
+    # The full fit can walk into a corner its screening did not reach: the independent
+    # world's second-order lag ended with three trials' arms at bounds, 1 000 units of
+    # −2 log L above the fit from plausible arms, and every candidate of the next step,
+    # started from those, "improved" on it by as much (and went to its held-out folds).
+    return _out_of_corners(setup.trials, screened.spec, setup.noise, fit, {})
+
+
+def _candidate_result(
+    current: Current,
+    name: str,
+    step: int,
+    fit: FitResult,
+    n_forms: int,
+    form: str,
+    form_m2ll: dict[str, float],
+    only_first: bool,
+    full_fit_skipped: float | None,
+) -> CandidateResult:
     d_m2ll = current.fit.m2ll - fit.m2ll
     # The family's prior is shared among its K forms (as drift's): 2 ln K on the −2 log L
     # scale, the price of choosing the best of K shapes on the same data.
-    d_bic = fit.bic - current.fit.bic + 2.0 * math.log(len(forms))
+    d_bic = fit.bic - current.fit.bic + 2.0 * math.log(n_forms)
     return CandidateResult(
-        name, step, fit, float(d_m2ll), float(d_bic), None, form=form.name,
+        name, step, fit, float(d_m2ll), float(d_bic), None, form=form,
         form_m2ll=form_m2ll, forms_consistent=[] if only_first else _consistent(form_m2ll),
-        only_first_form=only_first,
+        only_first_form=only_first, full_fit_skipped=full_fit_skipped,
     )  # fmt: skip
+
+
+def complete_full_fit(setup: Setup, current: Current, r: CandidateResult) -> CandidateResult:
+    """``r`` (fitted only as far as its forms' screening) with its best form's full fit: the
+    candidate :func:`evaluate_candidate` gives without ``full_fit_below``."""
+    if r.full_fit_skipped is None:
+        return r
+    fit = _full_fit(setup, r.fit)
+    form_m2ll = {**r.form_m2ll, r.form: fit.m2ll}
+    n_forms = len(candidate(r.name).forms)
+    return _candidate_result(
+        current, r.name, r.step, fit, n_forms, r.form, form_m2ll, r.only_first_form, None
+    )
 
 
 def needs_held_out(setup: Setup, r: CandidateResult) -> bool:
@@ -708,10 +785,18 @@ def judge(results: Sequence[CandidateResult], held_out: bool) -> None:
                 )
             elif ok_bic:
                 r.reason = "better on BIC, but does not predict the other repetition"
+            elif r.held_out_gain is None and r.full_fit_skipped is not None:
+                r.reason = "not better on BIC at its screening (so not tried on held-out data)"
             elif r.held_out_gain is None:
                 r.reason = "not better on BIC (so not tried on held-out data)"
             else:
                 r.reason = "no better than the model without it"
+            if r.full_fit_skipped is not None:
+                r.reason += (
+                    f" (fitted only as far as its forms' screening: its gain is below "
+                    f"{r.full_fit_skipped:.4g}, 1/{FULL_FIT_RATIO:g} of the best linear "
+                    "candidate's)"
+                )
         else:
             r.passed = r.delta_bic < -MIN_DBIC_NO_HELD_OUT and ok_z
             r.reason = (
@@ -737,11 +822,19 @@ def _worker_eval(
     name: str,
     step: int,
     first_form: str | None = None,
+    full_fit_below: float | None = None,
 ) -> CandidateResult:
     """One candidate in a worker; ``setup``: the handle of :mod:`analysis.executors` that
     brings the set-up once per worker (a Dask worker has no initializer to install it)."""
     with _limit_threads():
-        return evaluate_candidate(shared_value(setup), current, name, step, first_form)
+        return evaluate_candidate(
+            shared_value(setup), current, name, step, first_form, full_fit_below
+        )
+
+
+def _worker_complete(setup: object, current: Current, r: CandidateResult) -> CandidateResult:
+    with _limit_threads():
+        return complete_full_fit(shared_value(setup), current, r)
 
 
 @dataclass
@@ -798,6 +891,43 @@ def select(
         def late() -> bool:
             return clock() > deadline
 
+        def evaluate(
+            current: Current,
+            batch: list[str],
+            step: int,
+            first_forms: dict[str, str],
+            below: float | None,
+        ) -> list[CandidateResult]:
+            """The candidates ``batch`` (``below``: see :func:`evaluate_candidate`); what
+            the time limit leaves unevaluated goes to ``undone``."""
+            nonlocal executor
+            results: list[CandidateResult] = []
+            if executor is not None:
+                futs = {
+                    executor.submit(
+                        _worker_eval, shared, current, n, step, first_forms.get(n), below
+                    ): n
+                    for n in batch
+                }
+                done, pending = wait(futs)
+                results = [f.result() for f in futs if f in done]
+                if pending:
+                    _drop(pending, executor, own_pool)
+                    executor = None
+                    names_left = ", ".join(futs[f] for f in futs if f in pending)
+                    undone.append(f"step {step}: {names_left} not evaluated")
+                return results
+            for i, n in enumerate(batch):
+                if late():
+                    undone.append(f"step {step}: {', '.join(batch[i:])} not evaluated")
+                    break
+                if progress:
+                    progress(f"step {step}: {n}")
+                results.append(
+                    evaluate_candidate(setup, current, n, step, first_forms.get(n), below)
+                )
+            return results
+
         def wait(futs: dict) -> tuple[set, set]:
             """cf.wait for ``futs`` until done or the time limit (done, pending)."""
             done: set = set()
@@ -823,27 +953,19 @@ def select(
                 break
             if progress:
                 progress(f"step {step}: {len(remaining)} candidates")
-            results: list[CandidateResult] = []
-            if executor is not None:
-                futs = {
-                    executor.submit(_worker_eval, shared, current, n, step, first_forms.get(n)): n
-                    for n in remaining
-                }
-                done, pending = wait(futs)
-                results = [f.result() for f in futs if f in done]
-                if pending:
-                    _drop(pending, executor, own_pool)
-                    executor = None
-                    names_left = ", ".join(futs[f] for f in futs if f in pending)
-                    undone.append(f"step {step}: {names_left} not evaluated")
-            else:
-                for i, n in enumerate(remaining):
-                    if late():
-                        undone.append(f"step {step}: {', '.join(remaining[i:])} not evaluated")
-                        break
-                    if progress:
-                        progress(f"step {step}: {n}")
-                    results.append(evaluate_candidate(setup, current, n, step, first_forms.get(n)))
+            # The linear families first: the best of their gains decides which simulated
+            # family is worth its full fit (FULL_FIT_RATIO; only with a held-out check, which
+            # is what makes a candidate far below the leader one that cannot be chosen).
+            linear = [n for n in remaining if not setup.folds or is_linear_family(n)]
+            results = evaluate(current, linear, step, first_forms, None)
+            simulated = [n for n in remaining if n not in linear]
+            if simulated and undone:
+                undone.append(f"step {step}: {', '.join(simulated)} not evaluated")
+            elif simulated:
+                lead = max((r.delta_m2ll for r in results), default=0.0) / FULL_FIT_RATIO
+                below = lead if lead >= FULL_FIT_MIN_M2LL else None
+                results += evaluate(current, simulated, step, first_forms, below)
+            results.sort(key=lambda r: remaining.index(r.name))
             if undone:
                 # Cut before their held-out stage: say so rather than "does not predict".
                 for r in results:
@@ -908,6 +1030,8 @@ def retried(names: Sequence[str], steps: Sequence[Sequence[CandidateResult]]) ->
     first step's, a baseline far from the data, by hundreds."""
     if not steps:
         return list(names)
+    # (A candidate fitted only as far as its screening gained more than the threshold there,
+    # and its full fit at least as much: retried either way.)
     before = {r.name: r.delta_m2ll for r in steps[-1]}
     return [n for n in names if before.get(n, -math.inf) > RETRY_MIN_DELTA_M2LL]
 
@@ -934,32 +1058,47 @@ def _held_out_stage(
     gain (when it can be retained) is not tried on held-out data, and its reason says so. On
     a baseline far from the data every candidate passes on BIC, and these folds were more
     than half of the step's time. The others are then tried together (with any number of jobs
-    the same ones: the rule looks at the first candidate only).
+    the same ones: the rule looks at the first candidate only). A candidate fitted only as far
+    as its screening (:data:`FULL_FIT_RATIO`) that the rule leaves in gets its full fit first
+    (its full gain is at least its screening's), and is tried if that passes on BIC.
     """
-    todo = sorted((r for r in results if needs_held_out(setup, r)), key=lambda r: -r.delta_m2ll)
+    # A candidate fitted short is in question even where its screening fails on BIC: its
+    # full fit might pass (it is fitted fully only if the rule below leaves it in).
+    todo = sorted(
+        (r for r in results if needs_held_out(setup, r) or r.full_fit_skipped is not None),
+        key=lambda r: -r.delta_m2ll,
+    )
     best = -math.inf
 
     def cut(left: list[CandidateResult]) -> None:
+        if not left:
+            return
         for r in left:
             r.held_out_undone = True
         names = ", ".join(r.name for r in left)
         undone.append(f"step {step}: held-out check of {names} not done")
 
-    def run(batch: list[CandidateResult]) -> bool:
-        """The batch's folds; False when the time limit left some undone."""
+    def each(
+        batch: list[CandidateResult],
+        here: Callable[[CandidateResult], Any],
+        worker: Callable[..., Any],
+        take: Callable[[CandidateResult, Any], None],
+    ) -> bool:
+        """``here(r)`` for each of the batch (``worker`` on the executor), its result given
+        to ``take``; False when the time limit left some undone (those are cut)."""
         nonlocal executor
         if executor is None:
             for i, r in enumerate(batch):
                 if late():
                     cut(batch[i:])
                     return False
-                add_held_out(setup, current, r)
+                take(r, here(r))
             return True
-        futs = {executor.submit(_worker_folds, shared, current, r): r for r in batch}
+        futs = {executor.submit(worker, shared, current, r): r for r in batch}
         done, pending = wait(futs)
         for f, r in futs.items():
             if f in done:
-                add_held_out(setup, current, r, f.result())
+                take(r, f.result())
         if pending:
             _drop(pending, executor, own_pool)
             executor = None
@@ -967,9 +1106,26 @@ def _held_out_stage(
             return False
         return True
 
+    def complete(batch: list[CandidateResult]) -> bool:
+        """The full fits of the batch's candidates fitted as far as their screening only,
+        in place."""
+        short = [r for r in batch if r.full_fit_skipped is not None]
+        return each(short, lambda r: complete_full_fit(setup, current, r), _worker_complete, _take)
+
+    def run(batch: list[CandidateResult]) -> bool:
+        """The batch's folds."""
+        return each(
+            batch,
+            lambda r: held_out_folds(setup, current, r),
+            _worker_folds,
+            lambda r, folds: add_held_out(setup, current, r, folds),
+        )
+
     if not todo:
         return executor
-    if not run(todo[:1]):
+    # (The first is never one fitted short where the threshold came from a linear family that
+    # passes on BIC, see select; completed anyway, for any other way in.)
+    if not complete(todo[:1]) or not run([r for r in todo[:1] if needs_held_out(setup, r)]):
         if todo[1:]:
             cut(todo[1:])
         return executor
@@ -978,15 +1134,31 @@ def _held_out_stage(
     gain = first.held_out_gain
     if gain is not None and gain > MIN_HELD_OUT and first.robust_z > MIN_ROBUST_Z:
         best = gain
-    rest = []
-    for r in todo[1:]:
-        if HELD_OUT_SKIP_RATIO * r.delta_m2ll < best:
-            r.held_out_skipped = best
-        else:
-            rest.append(r)
+
+    def could_reach(batch: list[CandidateResult]) -> list[CandidateResult]:
+        out = []
+        for r in batch:
+            if HELD_OUT_SKIP_RATIO * r.delta_m2ll < best:
+                r.held_out_skipped = best
+            else:
+                out.append(r)
+        return out
+
+    rest = could_reach(todo[1:])
+    if any(r.full_fit_skipped is not None for r in rest):
+        if not complete(rest):
+            cut([r for r in rest if r.full_fit_skipped is None and needs_held_out(setup, r)])
+            return executor
+    rest = [r for r in rest if needs_held_out(setup, r)]
     if rest:
         run(rest)
     return executor
+
+
+def _take(r: CandidateResult, new: CandidateResult) -> None:
+    """``r`` becomes ``new`` in place (the step's list holds ``r``)."""
+    for f in fields(CandidateResult):
+        setattr(r, f.name, getattr(new, f.name))
 
 
 def _worker_folds(

@@ -1,13 +1,17 @@
 """What the forward selection leaves out to save time, and that it leaves out nothing else.
 
-Two rules (``analysis.diagnosis.engine``):
+Three rules (``analysis.diagnosis.engine``):
 
 - the held-out folds of a step run in order of the candidates' in-sample gain, and a
   candidate whose in-sample gain times ``HELD_OUT_SKIP_RATIO`` is below a retainable
   candidate's held-out gain is not tried held out (``_held_out_stage``);
 - at a later step, a family is screened first in its first step's best form, and in its
   other forms only if that form improves −2 log L by ``RETRY_MIN_DELTA_M2LL`` or more
-  (``evaluate_candidate``).
+  (``evaluate_candidate``);
+- the linear families are fitted first, and a simulated family whose forms' screening gains
+  less than ``1/FULL_FIT_RATIO`` of the best linear family's gain (far from the noise floor)
+  is not fitted fully unless the held-out stage could still choose it (``select``,
+  ``_held_out_stage``).
 
 The fits are replaced by stand-ins with chosen −2 log L, so the rules are checked exactly; the
 studies of ``test_diagnosis_otherworld.py`` and ``benchmarks/diagnose`` check them on real
@@ -228,3 +232,157 @@ def test_a_later_step_tries_only_what_improved_the_step_before():
     assert engine.retried(names[:3], [step1, step2]) == ["stiffness_nonlinearity"]
     # A name the step before did not try (dropped earlier) stays dropped.
     assert engine.retried(["coulomb_friction"], [step1, step2]) == []
+
+
+# -- the full fit of a simulated family far below the best linear one ---------------------------
+def _screened(name: str, gains: dict[str, float], monkeypatch) -> list[str]:
+    """Stand-ins for the forms' screening (form → gain) and the full fit (the best form's
+    gain × 2); returns a log of the fits: the forms screened, then "full"."""
+    log: list[str] = []
+
+    def fit_form(setup, current_, cand, max_iter=engine.MAX_ITER):
+        log.append(cand.form.name)
+        f = _fit(name, 1e6 - gains[cand.form.name])
+        return FitResult(**{**f.__dict__, "spec": ModelSpec(Mechanisms(), (cand,), 250.0)})
+
+    def full(trials, spec, noise, arms, x0):
+        log.append("full")
+        f = _fit(name, 1e6 - 2.0 * gains[spec.free[0].form.name])
+        return FitResult(**{**f.__dict__, "spec": spec})
+
+    monkeypatch.setattr(engine, "_fit_form", fit_form)
+    monkeypatch.setattr(engine, "fit_model", full)
+    return log
+
+
+def test_a_simulated_family_far_below_the_best_linear_one_is_not_fitted_fully(monkeypatch):
+    forms = [f.name for f in candidate("coulomb_friction").forms]
+    gains = dict(zip(forms, [30_000.0, 50_000.0, 40_000.0], strict=True))
+    log = _screened("coulomb_friction", gains, monkeypatch)
+    current = Current(_fit(None, 1e6).spec, _fit(None, 1e6), [], [])
+    setup = SimpleNamespace(trials=[], noise={}, folds=[((), ())])
+
+    # Its best screening (50 000) below the threshold: every form screened, no full fit.
+    r = engine.evaluate_candidate(setup, current, "coulomb_friction", 1, None, 60_000.0)
+    assert log == forms
+    assert r.full_fit_skipped == 60_000.0 and r.delta_m2ll == 50_000.0
+    assert r.form == forms[1] and r.to_dict()["full_fit_not_done_below"] == 60_000.0
+    judge([r], held_out=True)
+    assert "fitted only as far as its forms' screening" in r.reason
+
+    # Completed later, it is what an evaluation without the threshold gives.
+    full = engine.complete_full_fit(setup, current, r)
+    log.clear()
+    plain = engine.evaluate_candidate(setup, current, "coulomb_friction", 1, None, None)
+    assert log == [*forms, "full"]
+    assert full.full_fit_skipped is None and plain.full_fit_skipped is None
+    assert full.delta_m2ll == plain.delta_m2ll == 100_000.0
+    assert full.delta_bic == plain.delta_bic and full.form_m2ll == plain.form_m2ll
+
+    # At or above the threshold: fitted fully.
+    log.clear()
+    r = engine.evaluate_candidate(setup, current, "coulomb_friction", 1, None, 50_000.0)
+    assert log == [*forms, "full"] and r.full_fit_skipped is None
+
+
+def _select_order(monkeypatch, gains: dict[str, float], folds: bool) -> list[tuple]:
+    """select() with stand-in evaluations (name → gain), none retained; returns the
+    evaluations in order as (name, full_fit_below)."""
+    calls: list[tuple] = []
+
+    def evaluate(setup, current, name, step, first_form=None, full_fit_below=None):
+        calls.append((name, full_fit_below))
+        return _result(name, gains[name])
+
+    base = _fit(None, 1e6)
+    monkeypatch.setattr(engine, "evaluate_candidate", evaluate)
+    monkeypatch.setattr(engine, "make_current", lambda s, spec, fit: Current(spec, fit, [], []))
+    monkeypatch.setattr(engine, "_held_out_stage", lambda setup, cur, res, step, ex, *a: ex)
+    monkeypatch.setattr(engine, "judge", lambda results, held_out: None)  # none passes
+    setup = SimpleNamespace(folds=[((), ())] if folds else [], spec=lambda: base.spec, base=base)
+    sel = engine.select(setup, list(gains), jobs=1)
+    assert [r.name for r in sel.steps[0]] == list(gains)  # reported in the pool's order
+    return calls
+
+
+def test_the_linear_families_are_fitted_first_and_set_the_simulated_ones_threshold(monkeypatch):
+    gains = {"reflex_delay": 98_000.0, "coulomb_friction": 2.6e6,
+             "stiffness_nonlinearity": 1e5, "actuator_lag": 3.0e6, "sensor_delay": 4.4e6,
+             "grip_scheduled_stiffness": 600.0}  # fmt: skip
+    linear = {"reflex_delay", "actuator_lag", "sensor_delay"}
+    assert {n for n in gains if engine.is_linear_family(n)} == linear
+    calls = _select_order(monkeypatch, gains, folds=True)
+    assert {n for n, _ in calls[:3]} == linear and all(b is None for _, b in calls[:3])
+    assert [b for _, b in calls[3:]] == [4.4e6 / engine.FULL_FIT_RATIO] * 3
+
+    # Near the noise floor (the leader's fraction below FULL_FIT_MIN_M2LL) every family is
+    # fitted fully, and so it is without a held-out check.
+    near = {**gains, "sensor_delay": engine.FULL_FIT_RATIO * engine.FULL_FIT_MIN_M2LL - 1.0,
+            "actuator_lag": 10.0, "reflex_delay": 98.0}  # fmt: skip
+    assert all(b is None for _, b in _select_order(monkeypatch, near, folds=True))
+    calls = _select_order(monkeypatch, gains, folds=False)
+    assert [n for n, _ in calls] == list(gains) and all(b is None for _, b in calls)
+
+
+@pytest.mark.parametrize("threads", [False, True])
+def test_a_screened_only_candidate_still_to_be_tried_is_fitted_fully_first(monkeypatch, threads):
+    completed: list[str] = []
+
+    def complete(setup, current, r):
+        completed.append(r.name)
+        return _result(r.name, 10 * r.delta_m2ll)  # its full fit: ten times its screening
+
+    monkeypatch.setattr(engine, "complete_full_fit", complete)
+
+    def short(name: str, gain: float) -> CandidateResult:
+        r = _result(name, gain)
+        r.full_fit_skipped = gain + 1.0
+        return r
+
+    def stage(results, held_out):
+        if not threads:
+            return _stage(results, held_out)
+        with cf.ThreadPoolExecutor(2) as ex:
+            return _stage(results, held_out, ex)
+
+    # A retainable leader far above it: neither completed nor tried.
+    far = short("stiffness_nonlinearity", 50_000.0)
+    asked = stage([_result("sensor_delay", 4e6), far], {"sensor_delay": 4e6})
+    assert asked == ["sensor_delay"] and completed == []
+    assert far.held_out_skipped == 4e6 and far.full_fit_skipped is not None and not far.passed
+
+    # A leader that cannot be retained: completed, then tried on its full fit.
+    vague = _result("sensor_delay", 4e6, se=1.0)
+    near = short("coulomb_friction", 50_000.0)
+    asked = stage([vague, near], {"sensor_delay": 4e6, "coulomb_friction": 400_000.0})
+    assert completed == ["coulomb_friction"] and asked == ["sensor_delay", "coulomb_friction"]
+    assert near.full_fit_skipped is None and near.delta_m2ll == 500_000.0 and near.passed
+
+    # One whose screening fails on BIC, beside a leader that cannot be retained: its full fit
+    # might pass, so it is completed, and tried on it.
+    completed.clear()
+    vague = _result("sensor_delay", 4e6, se=1.0)
+    weak = short("grip_scheduled_stiffness", 15.0)  # ΔBIC +5 at its screening, −130 in full
+    asked = stage([vague, weak], {"sensor_delay": 4e6, "grip_scheduled_stiffness": 120.0})
+    assert completed == ["grip_scheduled_stiffness"] and asked[-1] == "grip_scheduled_stiffness"
+    assert weak.delta_m2ll == 150.0 and weak.held_out_gain == 120.0
+
+    # Beside a leader that can be retained it stays as screened, and says why.
+    weak = short("grip_scheduled_stiffness", 15.0)
+    asked = stage([_result("sensor_delay", 4e6), weak], {"sensor_delay": 4e6})
+    assert asked == ["sensor_delay"] and weak.full_fit_skipped is not None
+    assert weak.reason.startswith("not better on BIC at its screening")
+
+
+def test_a_screening_that_gains_too_little_to_be_retried_is_fitted_fully(monkeypatch):
+    # Whether a later step retries a family depends on its full gain: below the retry
+    # threshold the screening alone cannot say, so the full fit is done.
+    forms = [f.name for f in candidate("grip_scheduled_stiffness").forms]
+    gains = dict(zip(forms, [RETRY_MIN_DELTA_M2LL - 2.0, 1.0], strict=True))
+    log = _screened("grip_scheduled_stiffness", gains, monkeypatch)
+    current = Current(_fit(None, 1e6).spec, _fit(None, 1e6), [], [])
+    setup = SimpleNamespace(trials=[], noise={}, folds=[((), ())])
+    r = engine.evaluate_candidate(setup, current, "grip_scheduled_stiffness", 1, None, 5e4)
+    assert log == [*forms, "full"] and r.full_fit_skipped is None
+    assert r.delta_m2ll == 2 * (RETRY_MIN_DELTA_M2LL - 2.0) > RETRY_MIN_DELTA_M2LL
+    assert engine.retried(["grip_scheduled_stiffness"], [[r]]) == ["grip_scheduled_stiffness"]
