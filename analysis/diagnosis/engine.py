@@ -1134,21 +1134,15 @@ def _held_out_stage(
     gain = first.held_out_gain
     if gain is not None and gain > MIN_HELD_OUT and first.robust_z > MIN_ROBUST_Z:
         best = gain
-
-    def could_reach(batch: list[CandidateResult]) -> list[CandidateResult]:
-        out = []
-        for r in batch:
-            if HELD_OUT_SKIP_RATIO * r.delta_m2ll < best:
-                r.held_out_skipped = best
-            else:
-                out.append(r)
-        return out
-
-    rest = could_reach(todo[1:])
-    if any(r.full_fit_skipped is not None for r in rest):
-        if not complete(rest):
-            cut([r for r in rest if r.full_fit_skipped is None and needs_held_out(setup, r)])
-            return executor
+    rest = []
+    for r in todo[1:]:
+        if HELD_OUT_SKIP_RATIO * r.delta_m2ll < best:
+            r.held_out_skipped = best
+        else:
+            rest.append(r)
+    if not complete(rest):
+        cut([r for r in rest if r.full_fit_skipped is None and needs_held_out(setup, r)])
+        return executor
     rest = [r for r in rest if needs_held_out(setup, r)]
     if rest:
         run(rest)

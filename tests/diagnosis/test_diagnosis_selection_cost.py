@@ -124,21 +124,13 @@ def _evaluate(monkeypatch, first_form: str | None, first_gain: float) -> list[st
     ``first_form`` (or the first) gains ``first_gain``, the others 100. Returns the forms
     fitted, in order."""
     fam = candidate("reflex_delay")
+    first = first_form or fam.forms[0].name
+    gains = {f.name: first_gain if f.name == first else 100.0 for f in fam.forms}
+    log = _screened("reflex_delay", gains, monkeypatch)
     current = Current(_fit(None, 1e6).spec, _fit(None, 1e6), [], [])
-    tried: list[str] = []
-
-    def fit_form(setup, current_, cand, max_iter=engine.MAX_ITER):
-        tried.append(cand.form.name)
-        gain = first_gain if cand.form.name == (first_form or fam.forms[0].name) else 100.0
-        f = _fit("reflex_delay", 1e6 - gain)
-        return FitResult(**{**f.__dict__, "spec": ModelSpec(Mechanisms(), (cand,), 250.0)})
-
-    monkeypatch.setattr(engine, "_fit_form", fit_form)
-    monkeypatch.setattr(engine, "fit_model", lambda trials, spec, noise, arms, x0: _fit(
-        "reflex_delay", 1e6 - (first_gain if spec.free[0].form.name == (first_form or
-        fam.forms[0].name) else 100.0)))  # fmt: skip
     setup = SimpleNamespace(trials=[], noise={}, folds=[])
     r = engine.evaluate_candidate(setup, current, "reflex_delay", 2, first_form)
+    tried = [f for f in log if f != "full"]
     assert r.only_first_form == (len(tried) == 1)
     return tried
 
