@@ -223,6 +223,8 @@ class SimulatedLab:
 
     def close(self) -> None:
         listener, self._listener = self._listener, None
+        # Read before the close: a closed Listener has no address (AttributeError).
+        address = listener.address if listener is not None else None
         closers = [self.glove.close, self.node.close, self.bus.shutdown]
         if self.sensor_node is not None:
             closers.append(self.sensor_node.close)
@@ -234,8 +236,7 @@ class SimulatedLab:
                 closer()
             except Exception:
                 pass
-        if listener is not None:
-            _remove_control_folder(listener.address)
+        _remove_control_folder(address)
 
 
 def _remove_control_folder(address: str | None) -> None:

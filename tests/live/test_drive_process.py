@@ -120,6 +120,8 @@ def test_a_lab_leaves_no_control_folder_behind(ending):
         lab.proc.wait(10)
     lab.close()
     assert not os.path.exists(folder)
+    if ending == "closed":  # by itself, cleanly (its own removal of the folder once raised)
+        assert lab.proc.returncode == 0
 
 
 def test_the_fault_benchmark_measures_at_the_drive(tmp_path):

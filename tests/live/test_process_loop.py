@@ -49,6 +49,7 @@ def _when(eng, start_samples, action):
     return fired
 
 
+@pytest.mark.realtime
 def test_session_in_the_loop_process_is_real_time(process_loop, short_protocol, tmp_path):
     # Behaviour, not timing (timing: benchmarks/live_loop.py): the loop process has the
     # real-time measures its tuning reports, and runs a whole session cycle by cycle.

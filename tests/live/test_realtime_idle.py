@@ -73,6 +73,7 @@ def test_a_machine_that_only_halts_is_named():
     assert "shallow CPU idle" in realtime_summary({**applied, "cpuidle_driver": "intel_idle"})
 
 
+@pytest.mark.realtime
 def test_the_driver_reported_is_the_kernels():
     # tune_process in a process of its own (it takes SCHED_FIFO), read against sysfs directly.
     import json

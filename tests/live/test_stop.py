@@ -139,8 +139,9 @@ def _steerlab(*args, urgent: bool = False):
 
 
 def _urgent() -> None:
-    # A command typed next to two real-time sessions (each a SCHED_FIFO loop and simulated lab
-    # process) on a loaded 2-core machine: what CPU they leave goes mostly to it.
+    # A command typed next to two sessions (each a loop and a simulated lab process; at
+    # SCHED_FIFO where permitted, when run outside the tests) on a loaded 2-core machine: what
+    # CPU they leave goes mostly to it.
     try:
         os.nice(-10)
     except OSError:
@@ -182,8 +183,8 @@ def test_steerlab_stop_by_subject_with_two_real_sessions(
         # the second session is already running: a third for S02 is refused
         third = _steerlab("run", "--subject", 2, "--out", out, "--protocol",
                           short_protocol_file, "--rig", rig, "--resume", urgent=True)  # fmt: skip
-        # Generous: two real-time sessions (loop and simulated lab processes under SCHED_FIFO)
-        # leave an ordinary process little CPU on a 2-core machine to start Python in.
+        # Generous: two sessions (loop and simulated lab processes; under SCHED_FIFO, they left
+        # an ordinary process minutes to start Python in) on a 2-core machine.
         _, err = third.communicate(timeout=300)
         # Refused, naming the running session: by its writer lock (which names the process
         # and its command line) or, without one, by its pid file.
