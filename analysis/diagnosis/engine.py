@@ -235,9 +235,11 @@ def fit_nested(
     fallback_x: np.ndarray,
     fix_mechanisms: bool = False,
     max_iter: int = MAX_ITER,
+    relative_stop: bool = False,
 ) -> FitResult:
     """:func:`fit_model` from ``arms0``; if it ends worse than the model it extends
     (``fallback_arms`` at ``fallback_x``: the candidate switched off), fitted again from there.
+    ``relative_stop``: see :func:`fit_model` (a candidate's fits).
 
     :func:`start_arms` replaces arms that ran into a bound by plausible ones, and a fit from
     those can end far from the current model: on a world with a 35 ms reflex the baseline's
@@ -245,7 +247,11 @@ def fit_nested(
     10⁴ units of −2 log L worse than the baseline it contains. A candidate must never look
     worse than the model it extends.
     """
-    opts: dict[str, Any] = {"fix_mechanisms": fix_mechanisms, "max_iter": max_iter}
+    opts: dict[str, Any] = {
+        "fix_mechanisms": fix_mechanisms,
+        "max_iter": max_iter,
+        "relative_stop": relative_stop,
+    }
     fit = fit_model(trials, spec, noise, arms0, x0=x0, **opts)
     ref = 2.0 * sum(evaluate_cost(trials, spec, noise, fallback_arms, fallback_x).values())
     if ref < fit.m2ll:
@@ -507,16 +513,20 @@ def _fold_eval(
     and −2 log L per test trial (key "fold:label")."""
     xs, costs = [], []
     per_trial: dict[str, float] = {}
+    rel = bool(spec.n_free)  # a candidate's folds (the baseline's keep the absolute stop)
     for i, (train, test) in enumerate(setup.folds):
         if spec.n_free:
             x0 = None if x_starts is None else x_starts[i]
             x0 = spec.start() if x0 is None else x0
             a0 = start_arms(setup, train, spec, setup.noise, x0, arms)
-            x = fit_nested(train, spec, setup.noise, a0, x0, arms, _new_off(spec, x0)).x
+            off = _new_off(spec, x0)
+            x = fit_nested(train, spec, setup.noise, a0, x0, arms, off, relative_stop=rel).x
         else:
             x = spec.off()
         a0 = start_arms(setup, test, spec, setup.noise, x, arms)
-        te = fit_nested(test, spec, setup.noise, a0, x, arms, x, fix_mechanisms=True)
+        te = fit_nested(
+            test, spec, setup.noise, a0, x, arms, x, fix_mechanisms=True, relative_stop=rel
+        )
         xs.append(x)
         costs.append(te.m2ll)
         per_trial.update({f"{i}:{lab}": 2.0 * c for lab, c in te.cost_trial.items()})
@@ -538,8 +548,9 @@ def _fit_form(
     a0 = start_arms(setup, setup.trials, spec, setup.noise, x0, current.fit.arms)
     off = _new_off(spec, x0)
     return fit_nested(
-        setup.trials, spec, setup.noise, a0, x0, current.fit.arms, off, max_iter=max_iter
-    )
+        setup.trials, spec, setup.noise, a0, x0, current.fit.arms, off, max_iter=max_iter,
+        relative_stop=True,
+    )  # fmt: skip
 
 
 def _consistent(form_m2ll: dict[str, float]) -> list[str]:
@@ -622,12 +633,13 @@ def evaluate_candidate(
 
 def _full_fit(setup: Setup, screened: FitResult) -> FitResult:
     """The full fit of a family's best screened form, from its screening."""
-    fit = fit_model(setup.trials, screened.spec, setup.noise, screened.arms, x0=screened.x)
+    opts = {"relative_stop": True}
+    fit = fit_model(setup.trials, screened.spec, setup.noise, screened.arms, x0=screened.x, **opts)
     # The full fit can walk into a corner its screening did not reach: the independent
     # world's second-order lag ended with three trials' arms at bounds, 1 000 units of
     # −2 log L above the fit from plausible arms, and every candidate of the next step,
     # started from those, "improved" on it by as much (and went to its held-out folds).
-    return _out_of_corners(setup.trials, screened.spec, setup.noise, fit, {})
+    return _out_of_corners(setup.trials, screened.spec, setup.noise, fit, opts)
 
 
 def _candidate_result(

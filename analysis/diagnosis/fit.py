@@ -81,6 +81,15 @@ MAX_ITER = 15
 # Stop when the cost improves by less than this per trial: model comparisons work with
 # differences of several units, and every model is fitted to the same tolerance.
 TOL_PER_TRIAL = 0.01
+# ``relative_stop`` (a candidate's fits in the selection): a model whose lack of fit is above
+# RELATIVE_STOP_MIN_LACK (its cost over the trials whose loop is stable, per residual value)
+# also stops when an iteration gains less than REL_TOL_EXCESS of its cost's excess over the
+# noise floor. So far from the floor, the candidates' contest is decided by 10⁵–10⁶ units: a
+# friction fitted to a 12 ms sensor delay (17 × the floor) still gained 100–1 000 units an
+# iteration at its 15th. Near the floor every fit keeps the absolute tolerance: there a stop
+# 10 units early is the size of the ΔBIC and held-out thresholds.
+RELATIVE_STOP_MIN_LACK = 3.0
+REL_TOL_EXCESS = 1e-3
 # With any mechanism on, the arm's Jacobian comes from the simulator: a mechanism nearly
 # collinear with the arm (a reflex's gain with the intrinsic stiffness) needs the exact
 # profile; the continuous-time approximation (plain arm only) left fits stuck half-way.
@@ -585,6 +594,25 @@ def steps_are_simulated(spec: ModelSpec, x: np.ndarray, n_free: int) -> bool:
     return not all(steady_state.is_linear_time_invariant(spec.mechanisms(m)) for m in models)
 
 
+def stop_tolerance(
+    trials: Sequence[TrialData], cost_trial: dict[str, float], relative: bool
+) -> float:
+    """The least gain of cost an iteration must make for a fit to go on: 0.01 per trial
+    (:data:`TOL_PER_TRIAL`); if ``relative`` and the lack of fit over the trials whose loop is
+    stable exceeds :data:`RELATIVE_STOP_MIN_LACK`, :data:`REL_TOL_EXCESS` of their cost's
+    excess over the noise floor where that is more. (An unstable trial's cost, 10¹² a value,
+    would make that tolerance huge for every other.)"""
+    tol = TOL_PER_TRIAL * len(trials)
+    if not relative:
+        return tol
+    stable = [t for t in trials if not is_unstable_cost(cost_trial[t.label])]
+    n_values = 2 * sum(len(t.bins) for t in stable)  # E|z|² = 1 per value within noise
+    cost = sum(cost_trial[t.label] for t in stable)
+    if not n_values or cost <= RELATIVE_STOP_MIN_LACK * n_values:
+        return tol
+    return max(tol, REL_TOL_EXCESS * (cost - n_values))
+
+
 def fit_model(
     trials: Sequence[TrialData],
     spec: ModelSpec,
@@ -595,10 +623,13 @@ def fit_model(
     fix_mechanisms: bool = False,
     max_iter: int = MAX_ITER,
     fit_inertia: bool = True,
+    relative_stop: bool = False,
 ) -> FitResult:
     """Weighted-least-squares fit of the per-trial arms, the subjects' inertias (unless
     ``fit_inertia`` is false or the data hold them) and, unless fixed, the mechanism
-    parameters on ``trials``. ``x0``: start (or fixed) mechanism coordinates."""
+    parameters on ``trials``. ``x0``: start (or fixed) mechanism coordinates.
+    ``relative_stop``: far from the noise floor, stop at a tolerance relative to the misfit
+    (:func:`stop_tolerance`)."""
     x = spec.start() if x0 is None else np.array(x0, dtype=float)
     x = spec.clip(x)
     n_m = 0 if fix_mechanisms else spec.n_free
@@ -726,7 +757,7 @@ def fit_model(
                 accepted = True
                 break
             lam *= 10.0
-        if not accepted or gain < TOL_PER_TRIAL * len(trials):
+        if not accepted or gain < stop_tolerance(trials, st.cost_trial, relative_stop):
             if approximate:
                 # The approximate slope found no (or too little) descent: that says nothing
                 # about the optimum, so the exact slope decides. On the independent world's

@@ -237,7 +237,7 @@ def _screened(name: str, gains: dict[str, float], monkeypatch) -> list[str]:
         f = _fit(name, 1e6 - gains[cand.form.name])
         return FitResult(**{**f.__dict__, "spec": ModelSpec(Mechanisms(), (cand,), 250.0)})
 
-    def full(trials, spec, noise, arms, x0):
+    def full(trials, spec, noise, arms, x0, **opts):
         log.append("full")
         f = _fit(name, 1e6 - 2.0 * gains[spec.free[0].form.name])
         return FitResult(**{**f.__dict__, "spec": spec})
