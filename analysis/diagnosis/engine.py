@@ -62,6 +62,7 @@ from steerlab.analysis.diagnosis.candidates import CANDIDATES, Candidate, candid
 from steerlab.analysis.diagnosis.data import FALLBACK_ARM, PreparedStudy, TrialData, with_inertia
 from steerlab.analysis.diagnosis.fit import (
     MAX_ITER,
+    RELATIVE_STOP_MIN_LACK,
     FitResult,
     ModelSpec,
     NoiseModel,
@@ -507,13 +508,15 @@ def _fold_eval(
     spec: ModelSpec,
     arms: dict[str, ArmParams],
     x_starts: Sequence[np.ndarray] | None = None,
+    relative_stop: bool | None = None,
 ) -> tuple[list[np.ndarray], list[float], dict[str, float]]:
     """Per fold: the mechanism coordinates fitted on the training trials (from ``x_starts``,
     never from a fit that saw the test trials), and −2 log L on the test trials with them;
-    and −2 log L per test trial (key "fold:label")."""
+    and −2 log L per test trial (key "fold:label"). ``relative_stop``: see
+    :func:`fit_model`; by default for a candidate's folds, not the baseline's."""
     xs, costs = [], []
     per_trial: dict[str, float] = {}
-    rel = bool(spec.n_free)  # a candidate's folds (the baseline's keep the absolute stop)
+    rel = bool(spec.n_free) if relative_stop is None else relative_stop
     for i, (train, test) in enumerate(setup.folds):
         if spec.n_free:
             x0 = None if x_starts is None else x_starts[i]
@@ -996,7 +999,7 @@ def select(
             best = max(passing, key=key)
             best.equally_good = confusable(best, passing, held_out=bool(setup.folds))
             retained.append(best)
-            current = Current(best.fit.spec, best.fit, best.fold_x, best.fold_cost)
+            current = current_after(setup, best)
     finally:
         if own_pool and executor is not None:
             executor.shutdown()
@@ -1046,6 +1049,25 @@ def retried(names: Sequence[str], steps: Sequence[Sequence[CandidateResult]]) ->
     # and its full fit at least as much: retried either way.)
     before = {r.name: r.delta_m2ll for r in steps[-1]}
     return [n for n in names if before.get(n, -math.inf) > RETRY_MIN_DELTA_M2LL]
+
+
+def current_after(setup: Setup, best: CandidateResult) -> Current:
+    """The model the next step adds to: the retained candidate ``best`` as judged; or, where
+    it was retained far from the noise floor (a lack of fit above
+    :data:`~analysis.diagnosis.fit.RELATIVE_STOP_MIN_LACK`, where its fits may have stopped at
+    the tolerance relative to the misfit), fitted on to the absolute tolerance, its folds
+    too. Else the next step's candidates, started from its arms, would collect the descent
+    it left (up to hundreds of units an iteration at a lack just above 3 on a full study) and
+    pass on it."""
+    if best.fit.lack_of_fit <= RELATIVE_STOP_MIN_LACK:
+        return Current(best.fit.spec, best.fit, best.fold_x, best.fold_cost)
+    spec = best.fit.spec
+    fit = fit_model(setup.trials, spec, setup.noise, best.fit.arms, x0=best.fit.x)
+    fit = _out_of_corners(setup.trials, spec, setup.noise, fit, {})
+    fold_x, fold_cost = best.fold_x, best.fold_cost
+    if fold_x:
+        fold_x, fold_cost, _ = _fold_eval(setup, spec, fit.arms, fold_x, relative_stop=False)
+    return Current(spec, fit, fold_x, fold_cost)
 
 
 def _held_out_stage(

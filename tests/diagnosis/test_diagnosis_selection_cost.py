@@ -238,6 +238,8 @@ def _screened(name: str, gains: dict[str, float], monkeypatch) -> list[str]:
         return FitResult(**{**f.__dict__, "spec": ModelSpec(Mechanisms(), (cand,), 250.0)})
 
     def full(trials, spec, noise, arms, x0, **opts):
+        # A candidate's full fit, far from the floor, stops relative to its misfit.
+        assert opts == {"relative_stop": True}
         log.append("full")
         f = _fit(name, 1e6 - 2.0 * gains[spec.free[0].form.name])
         return FitResult(**{**f.__dict__, "spec": spec})
@@ -378,3 +380,33 @@ def test_a_screening_that_gains_too_little_to_be_retried_is_fitted_fully(monkeyp
     assert log == [*forms, "full"] and r.full_fit_skipped is None
     assert r.delta_m2ll == 2 * (RETRY_MIN_DELTA_M2LL - 2.0) > RETRY_MIN_DELTA_M2LL
     assert engine.retried(["grip_scheduled_stiffness"], [[r]]) == ["grip_scheduled_stiffness"]
+
+
+def test_a_model_retained_far_from_the_floor_is_fitted_on_to_the_absolute_tolerance(monkeypatch):
+    """Its fits may have stopped relative to its misfit (``fit.stop_tolerance``): the next
+    step's candidates, started from its arms, would collect what it left. Near the floor the
+    candidate's fit and folds are taken as judged."""
+    from dataclasses import replace
+
+    calls: list[tuple] = []
+    polished = _fit("coulomb_friction", 1e6 - 150.0)
+
+    def fit_model(trials, spec, noise, arms, x0=None, **opts):
+        calls.append(("fit", opts))
+        return polished
+
+    def fold_eval(setup, spec, arms, x_starts=None, relative_stop=None):
+        calls.append(("folds", relative_stop))
+        return [np.ones(1)], [7.0], {}
+
+    monkeypatch.setattr(engine, "fit_model", fit_model)
+    monkeypatch.setattr(engine, "_fold_eval", fold_eval)
+    monkeypatch.setattr(engine, "_out_of_corners", lambda trials, spec, noise, fit, opts: fit)
+    setup = SimpleNamespace(trials=[], noise={})
+    near = replace(_result("coulomb_friction", 100.0), fold_x=[np.zeros(1)], fold_cost=[9.0])
+    current = engine.current_after(setup, near)
+    assert current.fit is near.fit and current.fold_test_cost == [9.0] and calls == []
+    far = replace(near, fit=replace(near.fit, lack_of_fit=engine.RELATIVE_STOP_MIN_LACK + 0.5))
+    current = engine.current_after(setup, far)
+    assert calls == [("fit", {}), ("folds", False)]
+    assert current.fit is polished and current.fold_test_cost == [7.0]

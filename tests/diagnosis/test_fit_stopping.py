@@ -42,9 +42,11 @@ def test_the_absolute_tolerance_unless_asked_and_far_from_the_floor():
     assert stop_tolerance(trials, far, relative=True) == pytest.approx(REL_TOL_EXCESS * 9 * 800)
     at_edge = {t.label: RELATIVE_STOP_MIN_LACK * 200.0 for t in trials}
     assert stop_tolerance(trials, at_edge, relative=True) == absolute
-    # Far from the floor by a hair of excess: never below the absolute tolerance.
-    tiny = [SimpleNamespace(label="t", bins=np.arange(2))]
-    assert stop_tolerance(tiny, {"t": 4 * 4 * 1.000001}, relative=True) >= TOL_PER_TRIAL
+    # Beyond a lack of 3 with an excess whose thousandth is less than 0.01 per trial: never
+    # below the absolute tolerance.
+    tiny = [SimpleNamespace(label="t", bins=np.arange(2))]  # 4 residual values
+    assert REL_TOL_EXCESS * (13.0 - 4) < TOL_PER_TRIAL
+    assert stop_tolerance(tiny, {"t": 13.0}, relative=True) == TOL_PER_TRIAL
 
 
 def test_an_unstable_trial_does_not_loosen_the_others():
