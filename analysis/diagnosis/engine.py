@@ -634,9 +634,10 @@ def evaluate_candidate(
     )
 
 
-def _full_fit(setup: Setup, screened: FitResult) -> FitResult:
-    """The full fit of a family's best screened form, from its screening."""
-    opts = {"relative_stop": True}
+def _full_fit(setup: Setup, screened: FitResult, relative_stop: bool = True) -> FitResult:
+    """The full fit of a family's best screened form, from its screening (or of any fit, on
+    from where it ended). ``relative_stop``: see :func:`fit_model`."""
+    opts = {"relative_stop": relative_stop}
     fit = fit_model(setup.trials, screened.spec, setup.noise, screened.arms, x0=screened.x, **opts)
     # The full fit can walk into a corner its screening did not reach: the independent
     # world's second-order lag ended with three trials' arms at bounds, 1 000 units of
@@ -1062,8 +1063,7 @@ def current_after(setup: Setup, best: CandidateResult) -> Current:
     if best.fit.lack_of_fit <= RELATIVE_STOP_MIN_LACK:
         return Current(best.fit.spec, best.fit, best.fold_x, best.fold_cost)
     spec = best.fit.spec
-    fit = fit_model(setup.trials, spec, setup.noise, best.fit.arms, x0=best.fit.x)
-    fit = _out_of_corners(setup.trials, spec, setup.noise, fit, {})
+    fit = _full_fit(setup, best.fit, relative_stop=False)
     fold_x, fold_cost = best.fold_x, best.fold_cost
     if fold_x:
         fold_x, fold_cost, _ = _fold_eval(setup, spec, fit.arms, fold_x, relative_stop=False)

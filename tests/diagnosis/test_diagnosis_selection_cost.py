@@ -408,5 +408,5 @@ def test_a_model_retained_far_from_the_floor_is_fitted_on_to_the_absolute_tolera
     assert current.fit is near.fit and current.fold_test_cost == [9.0] and calls == []
     far = replace(near, fit=replace(near.fit, lack_of_fit=engine.RELATIVE_STOP_MIN_LACK + 0.5))
     current = engine.current_after(setup, far)
-    assert calls == [("fit", {}), ("folds", False)]
+    assert calls == [("fit", {"relative_stop": False}), ("folds", False)]
     assert current.fit is polished and current.fold_test_cost == [7.0]
