@@ -367,3 +367,17 @@ def test_stepwise_drift_of_k_i_alone_leaves_the_contact(fast_protocol):
     ).arm
     assert drifted.k_i == pytest.approx(plain.k_i * 1.3)
     assert drifted.k_c == plain.k_c
+
+
+def test_the_kernels_tanh_is_numpys_to_a_few_ulp():
+    """Dry friction's regularised sign in the kernel comes from one exponential (speed); it
+    must be tanh itself to within rounding, odd, and exactly ±1 and 0 where tanh is."""
+    from steerlab.hardware.sim.world import _tanh
+
+    z = np.concatenate([[0.0, 0.5, 0.4999999999, 5e-324], np.logspace(-300, 3, 20_000)])
+    z = np.concatenate([z, -z])
+    got = np.array([_tanh(v) for v in z])
+    ref = np.tanh(z)
+    assert np.all(np.abs(got - ref) <= 4 * np.spacing(np.abs(ref)))
+    assert np.array_equal(np.array([_tanh(-v) for v in z]), -got)
+    assert _tanh(0.0) == 0.0 and _tanh(40.0) == 1.0 and _tanh(-40.0) == -1.0
