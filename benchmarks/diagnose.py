@@ -237,6 +237,10 @@ def main(argv: list[str]) -> dict:
         help="also write every case's result to this JSON file (or a folder's diagnose.json)",
     )
     a = ap.parse_args(argv)
+    if a.study_jobs > 1 and a.scheduler:
+        # Dask's workers are daemon processes, which cannot start a diagnosis's own pool:
+        # every study would end as an error row.
+        ap.error("--study-jobs above 1 needs local processes (not with --scheduler)")
     if a.out:
         # Before the run, not after its first study: a folder given here once cost a whole
         # run's results (the error came at the first write, the pool then finished every study).

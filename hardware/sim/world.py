@@ -194,7 +194,7 @@ def _tanh(z):
     on a trial with dry friction; ``exp`` is an LLVM intrinsic, ``tanh`` a library call); libm's
     itself below |z| = 0.5, where 1 − e^{−2|z|} would lose digits."""
     a = abs(z)
-    if a < 0.5:
+    if not a >= 0.5:  # (NaN too: libm's NaN, not the formula's)
         return np.tanh(z)
     e = np.exp(-2.0 * a)
     t = (1.0 - e) / (1.0 + e)

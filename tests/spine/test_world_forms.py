@@ -369,15 +369,26 @@ def test_stepwise_drift_of_k_i_alone_leaves_the_contact(fast_protocol):
     assert drifted.k_c == plain.k_c
 
 
-def test_the_kernels_tanh_is_numpys_to_a_few_ulp():
+def test_the_kernels_tanh_is_libms_to_a_few_ulp():
     """Dry friction's regularised sign in the kernel comes from one exponential (speed); it
-    must be tanh itself to within rounding, odd, and exactly ±1 and 0 where tanh is."""
+    must be the tanh the kernel used before (libm's, through numba) to within rounding, odd
+    (the sign of zero too), and exactly what tanh is at 0, ±inf and far out."""
+    import math
+
+    from numba import njit
+
     from steerlab.hardware.sim.world import _tanh
 
-    z = np.concatenate([[0.0, 0.5, 0.4999999999, 5e-324], np.logspace(-300, 3, 20_000)])
+    libm_tanh = njit(lambda v: np.tanh(v))
+    rng = np.random.default_rng(0)
+    z = np.concatenate(
+        [rng.uniform(0.5, 20.0, 100_000), np.logspace(-300, 3, 5_000), [0.5, 0.4999999999, 5e-324]]
+    )
     z = np.concatenate([z, -z])
     got = np.array([_tanh(v) for v in z])
-    ref = np.tanh(z)
+    ref = np.array([libm_tanh(v) for v in z])
     assert np.all(np.abs(got - ref) <= 4 * np.spacing(np.abs(ref)))
     assert np.array_equal(np.array([_tanh(-v) for v in z]), -got)
-    assert _tanh(0.0) == 0.0 and _tanh(40.0) == 1.0 and _tanh(-40.0) == -1.0
+    assert _tanh(0.0) == 0.0 and math.copysign(1.0, _tanh(-0.0)) == -1.0
+    assert _tanh(40.0) == 1.0 and _tanh(math.inf) == 1.0 and _tanh(-math.inf) == -1.0
+    assert math.isnan(_tanh(math.nan))
