@@ -169,7 +169,8 @@ def run_case(args: tuple, study_jobs: int = 1) -> dict:
     """One study: ("steerlab", mechanism, magnitude, seed, subjects) or
     ("otherworld", kind, form, seed); diagnosed with ``study_jobs`` worker processes."""
     if args[0] == "otherworld":
-        return _run_otherworld_case(*args[1:], study_jobs=study_jobs)
+        _, kind, form, seed = args
+        return _run_otherworld_case(kind, form, seed, study_jobs=study_jobs)
     _, mechanism, magnitude, seed, n_subjects = args
     with tempfile.TemporaryDirectory() as tmp:
         data = make_study(Path(tmp) / "s", mechanism, magnitude, seed=seed, n_subjects=n_subjects)
