@@ -238,6 +238,7 @@ def main(argv: list[str]) -> dict:
         help="also write every case's result to this JSON file (or a folder's diagnose.json)",
     )
     a = ap.parse_args(argv)
+    a.study_jobs = max(1, a.study_jobs)
     if a.study_jobs > 1 and a.scheduler:
         # Dask's workers are daemon processes, which cannot start a diagnosis's own pool:
         # every study would end as an error row.
@@ -275,7 +276,7 @@ def main(argv: list[str]) -> dict:
         executor_for(a.scheduler, a.jobs) as dask,
         nullcontext(dask) if dask else ProcessPoolExecutor(max_workers=max(1, a.jobs)) as ex,
     ):
-        for r in ex.map(partial(run_case, study_jobs=max(1, a.study_jobs)), cases):
+        for r in ex.map(partial(run_case, study_jobs=a.study_jobs), cases):
             results.append(r)
             if a.out:  # as it goes: a long run that is stopped keeps what it did
                 Path(a.out).write_text(json.dumps(results, indent=1))
@@ -289,7 +290,7 @@ def main(argv: list[str]) -> dict:
         "side_by_side": side_by_side(worlds),
         "worlds": worlds,
         "wall_s": round(wall, 1),
-        "study_jobs": max(1, a.study_jobs),
+        "study_jobs": a.study_jobs,
         "load_average": {"before": load_before, "after": os.getloadavg()},
         "machine": machine(),
     }

@@ -3,7 +3,8 @@ trial's ``World.run`` per simulated sample, for the mechanisms the diagnosis sim
 
 Each run is one trial in the way the diagnosis runs its simulations
 (``analysis.diagnosis.simulate``): a noiseless world at the trial's rate, given its exogenous
-signals as one block (here a seeded remnant-like torque and a constant grip), run over
+signals as one block by the diagnosis's ``ReplayBlocks`` (here a seeded remnant-like torque
+and a constant grip), run over
 ``--seconds`` of a multisine perturbation (from rest, with the default wheel and limits; the
 diagnosis starts from the periodic steady state, which changes nothing per sample). Timed:
 ``World.run`` of ``--runs`` worlds made and started beforehand, the least CPU time
@@ -24,6 +25,7 @@ import numpy as np
 from scipy.signal import lfilter
 from threadpoolctl import threadpool_limits
 
+from steerlab.analysis.diagnosis.simulate import ReplayBlocks
 from steerlab.benchmarks.machine import machine
 from steerlab.hardware.sim.mechanisms import (
     ActuatorLag,
@@ -48,29 +50,12 @@ CASES = {
 }
 
 
-class _Replay:
-    """The world's noise source (``hardware.sim.world.NoiseSource``) as the diagnosis gives
-    it: the whole trial in one block, no sensor noise."""
-
-    def __init__(self, remnant: np.ndarray, grip_n: float):
-        self.block = len(remnant)
-        z = np.zeros(self.block)
-        g = np.full(self.block, grip_n)
-        self._b = {
-            "remnant_Nm": remnant, "velocity_noise": z, "torque_noise": z, "grip_true_N": g,
-            "grip_force_left_N": 0.5 * g, "grip_force_right_N": 0.5 * g,
-        }  # fmt: skip
-
-    def next_block(self) -> dict[str, np.ndarray]:
-        return self._b
-
-
 def _ready(mech: Mechanisms, fs: float, remnant: np.ndarray) -> World:
     """A world made, started and given its signals: what is left is ``run``."""
     behaviour = NOMINAL["BT12"]
     w = World(WorldConfig(fs_hz=fs, sensors=NOISELESS_SENSORS, mechanisms=mech))
     w.begin_trial(behaviour, 0.5, seed=0)
-    w.noise = _Replay(remnant, behaviour.grip_mean_n)
+    w.noise = ReplayBlocks(fs, np.full(len(remnant), behaviour.grip_mean_n), remnant, len(remnant))
     return w
 
 
@@ -84,9 +69,11 @@ def main(argv: list[str]) -> dict:
     a = ap.parse_args(argv)
     rng = np.random.default_rng(0)
     out: dict[str, dict] = {}
+    samples: dict[str, int] = {}
     with threadpool_limits(1):
         for fs in (float(r) for r in a.rates.split(",")):
             n = int(round(a.seconds * fs))
+            samples[f"{fs:g} Hz"] = n
             tp = design_multisine().signal(np.arange(n) / fs)
             # A remnant of the simulator's size and bandwidth (AR(1), SD 0.2 N·m, corner 0.6 Hz).
             alpha = np.exp(-2 * np.pi * 0.6 / fs)
@@ -109,6 +96,4 @@ def main(argv: list[str]) -> dict:
                     "ns_per_sample": round(best / n * 1e9, 1),
                     "ms_setup_per_run": round(setup * 1e3, 3),
                 }
-    return {"samples_per_run": {f"{float(r):g} Hz": int(round(a.seconds * float(r)))
-                                for r in a.rates.split(",")},
-            "cases": out, "machine": machine()}  # fmt: skip
+    return {"samples_per_run": samples, "cases": out, "machine": machine()}

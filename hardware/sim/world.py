@@ -321,8 +321,8 @@ def _advance(
             # The delta torques are held over the sample, i.e. half a sample late: a spring Δk
             # then acts as Δk − s·Δk·dt/2, a negative damping. Scheduled trials add Δk·dt/2 to
             # the matching damping (P_DPAR_HALF), so the arm moves with the logged parameters.
-            dcon_true = dpar[k, 3] * (th - thh) + dpar[k, 2] * (om - omh)
-            dcon = dcon_true + half * dpar[k, 3] * (om - omh)
+            dcon_true = dkc * (th - thh) + dbc * (om - omh)
+            dcon = dcon_true + half * dkc * (om - omh)
             h += dcon - (dpar[k, 0] + half * dpar[k, 1]) * omh - dpar[k, 1] * thh
             w -= dcon
             contact += dcon_true
