@@ -47,11 +47,14 @@ Drift is judged separately, on the per-trial arm parameters (:mod:`analysis.diag
 from __future__ import annotations
 
 import concurrent.futures as cf
+import heapq
+import itertools
 import math
 import multiprocessing.connection as mp_connection
 import time
-from collections.abc import Callable, Sequence
-from contextlib import AbstractContextManager
+import uuid
+from collections.abc import Callable, Generator, Iterator, Sequence
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -63,9 +66,11 @@ from steerlab.analysis.diagnosis.data import FALLBACK_ARM, PreparedStudy, TrialD
 from steerlab.analysis.diagnosis.fit import (
     MAX_ITER,
     RELATIVE_STOP_MIN_LACK,
+    SPECTRA_MAP,
     FitResult,
     ModelSpec,
     NoiseModel,
+    SpectraJob,
     best_start_arms,
     evaluate_cost,
     fit_model,
@@ -150,6 +155,7 @@ class Setup:
     folds: list[tuple[list[TrialData], list[TrialData]]]  # (train, test) by repetition
     n_remnant: int = K_REMNANT_SELECT
     final_noise: NoiseModel | None = None  # from the retained model's residual
+    trial_state: str | None = None  # the TrialState last applied to the trials (its token)
 
     def spec(self, free: Sequence[Candidate] = ()) -> ModelSpec:
         return ModelSpec(self.base_mech, tuple(free), self.fs_ref)
@@ -514,32 +520,61 @@ def _fold_eval(
     never from a fit that saw the test trials), and −2 log L on the test trials with them;
     and −2 log L per test trial (key "fold:label"). ``relative_stop``: see
     :func:`fit_model`; by default for a candidate's folds, not the baseline's."""
-    xs, costs = [], []
-    per_trial: dict[str, float] = {}
+    return joined_folds(
+        [
+            _one_fold(
+                setup, spec, arms, i, None if x_starts is None else x_starts[i], relative_stop
+            )
+            for i in range(len(setup.folds))
+        ]
+    )
+
+
+FoldResult = tuple[np.ndarray, float, dict[str, float]]
+
+
+def _one_fold(
+    setup: Setup,
+    spec: ModelSpec,
+    arms: dict[str, ArmParams],
+    i: int,
+    x_start: np.ndarray | None,
+    relative_stop: bool | None,
+) -> FoldResult:
+    """Fold ``i`` of :func:`_fold_eval`: its own task on a pool (the folds share nothing)."""
+    train, test = setup.folds[i]
     rel = bool(spec.n_free) if relative_stop is None else relative_stop
-    for i, (train, test) in enumerate(setup.folds):
-        if spec.n_free:
-            x0 = None if x_starts is None else x_starts[i]
-            x0 = spec.start() if x0 is None else x0
-            a0 = start_arms(setup, train, spec, setup.noise, x0, arms)
-            off = _new_off(spec, x0)
-            x = fit_nested(train, spec, setup.noise, a0, x0, arms, off, relative_stop=rel).x
-        else:
-            x = spec.off()
-        a0 = start_arms(setup, test, spec, setup.noise, x, arms)
-        te = fit_nested(
-            test, spec, setup.noise, a0, x, arms, x, fix_mechanisms=True, relative_stop=rel
-        )
-        xs.append(x)
-        costs.append(te.m2ll)
-        per_trial.update({f"{i}:{lab}": 2.0 * c for lab, c in te.cost_trial.items()})
-    return xs, costs, per_trial
+    if spec.n_free:
+        x0 = spec.start() if x_start is None else x_start
+        a0 = start_arms(setup, train, spec, setup.noise, x0, arms)
+        off = _new_off(spec, x0)
+        x = fit_nested(train, spec, setup.noise, a0, x0, arms, off, relative_stop=rel).x
+    else:
+        x = spec.off()
+    a0 = start_arms(setup, test, spec, setup.noise, x, arms)
+    te = fit_nested(test, spec, setup.noise, a0, x, arms, x, fix_mechanisms=True, relative_stop=rel)
+    return x, te.m2ll, {f"{i}:{lab}": 2.0 * c for lab, c in te.cost_trial.items()}
+
+
+def joined_folds(
+    parts: Sequence[FoldResult],
+) -> tuple[list[np.ndarray], list[float], dict[str, float]]:
+    """:func:`_fold_eval`'s result from its folds' (:func:`_one_fold`), in fold order."""
+    per_trial: dict[str, float] = {}
+    for _, _, d in parts:
+        per_trial.update(d)
+    return [p[0] for p in parts], [p[1] for p in parts], per_trial
+
+
+FoldEval = Callable[..., tuple[list[np.ndarray], list[float], dict[str, float]]]
 
 
 def make_current(
-    setup: Setup, spec: ModelSpec, fit: FitResult, x_starts: Sequence[np.ndarray] | None = None
+    setup: Setup, spec: ModelSpec, fit: FitResult, folds: FoldEval | None = None
 ) -> Current:
-    xs, costs, _ = _fold_eval(setup, spec, fit.arms, x_starts)
+    """The model ``spec`` fitted as ``fit``, with its folds (``folds``: :func:`_fold_eval`
+    without its ``setup``, where it runs elsewhere)."""
+    xs, costs, _ = _fold_eval(setup, spec, fit.arms) if folds is None else folds(spec, fit.arms)
     return Current(spec, fit, xs, costs)
 
 
@@ -595,7 +630,39 @@ def evaluate_candidate(
     improves nothing (less than :data:`RETRY_MIN_DELTA_M2LL`) the other forms are not
     screened. ``full_fit_below``: a family of several forms whose best screening gains less
     than this (and more than :data:`RETRY_MIN_DELTA_M2LL`) is not fitted fully
-    (:data:`FULL_FIT_RATIO`; :func:`complete_full_fit` does it where it is needed)."""
+    (:data:`FULL_FIT_RATIO`; :func:`complete_full_fit` does it where it is needed).
+
+    The fits are :func:`candidate_plan`'s tasks, run here one after the other."""
+    plan = candidate_plan(current, name, step, first_form, full_fit_below)
+    request: Any = next(plan)
+    while True:
+        try:
+            request = plan.send([run_task(setup, current, task) for task in request])
+        except StopIteration as stop:
+            return stop.value
+
+
+# A candidate_plan's request for its step's full-fit threshold (known once the linear
+# families are evaluated), where it was started without it.
+PENDING = "pending"
+# A fit of a candidate: ("form", Candidate, max_iter): the candidate (one form) added to the
+# current model and fitted (_fit_form); ("full", FitResult): a screening's full fit.
+Task = tuple[Any, ...]
+
+
+def candidate_plan(
+    current: Current,
+    name: str,
+    step: int,
+    first_form: str | None = None,
+    full_fit_below: float | str | None = None,
+) -> Generator[list[Task] | str, Any, CandidateResult]:
+    """:func:`evaluate_candidate` as a plan: it yields lists of :data:`Task`s, each list's
+    fits independent of one another, and is sent their results in order; with
+    ``full_fit_below`` :data:`PENDING` it yields PENDING when it needs that threshold, and
+    is sent it; it returns the candidate. On a pool each list's fits run at once: a family's
+    forms had been fitted one after another in one worker while the other waited (7.5 of a
+    friction study's 64 s at its second step)."""
     family = candidate(name)
     forms = (
         (family.form_of(current.spec.base),) if family.is_on(current.spec.base) else family.forms
@@ -603,35 +670,50 @@ def evaluate_candidate(
     only_first = False
     skipped = None
     if len(forms) == 1:
-        fit, form, form_m2ll = _fit_form(setup, current, family.with_form(forms[0])), forms[0], {}
+        (fit,) = yield [("form", family.with_form(forms[0]), MAX_ITER)]
+        return _candidate_result(current, name, step, fit, 1, forms[0].name, {}, False, None)
+    # Each form gets a few iterations and the best of them the full fit: fitting every
+    # form fully would cost as much as that many candidates.
+    order = sorted(forms, key=lambda f: f.name != first_form)
+    (first,) = yield [("form", family.with_form(order[0]), FORM_SCREEN_ITER)]
+    fits = [(first, order[0])]
+    # At a later step a family whose first step's best form now improves nothing is not
+    # screened in its others: at the first step, against a baseline far from the data,
+    # every family "improved", and its forms were most of a later step's time.
+    only_first = (
+        order[0].name == first_form and current.fit.m2ll - first.m2ll < RETRY_MIN_DELTA_M2LL
+    )
+    if not only_first:
+        more = yield [("form", family.with_form(f), FORM_SCREEN_ITER) for f in order[1:]]
+        fits += list(zip(more, order[1:], strict=True))
+    form_m2ll = {f.name: r.m2ll for r, f in fits}
+    fit, form = min(fits, key=lambda pair: pair[0].m2ll)
+    gain = current.fit.m2ll - fit.m2ll
+    if full_fit_below == PENDING and gain > RETRY_MIN_DELTA_M2LL:
+        full_fit_below = yield PENDING
+    if full_fit_below is not None and RETRY_MIN_DELTA_M2LL < gain < float(full_fit_below):
+        skipped = float(full_fit_below)
     else:
-        # Each form gets a few iterations and the best of them the full fit: fitting every
-        # form fully would cost as much as that many candidates.
-        order = sorted(forms, key=lambda f: f.name != first_form)
-        fits = [(_fit_form(setup, current, family.with_form(order[0]), FORM_SCREEN_ITER), order[0])]
-        # At a later step a family whose first step's best form now improves nothing is not
-        # screened in its others: at the first step, against a baseline far from the data,
-        # every family "improved", and its forms were most of a later step's time.
-        only_first = (
-            order[0].name == first_form
-            and current.fit.m2ll - fits[0][0].m2ll < RETRY_MIN_DELTA_M2LL
-        )
-        if not only_first:
-            fits += [
-                (_fit_form(setup, current, family.with_form(f), FORM_SCREEN_ITER), f)
-                for f in order[1:]
-            ]
-        form_m2ll = {f.name: r.m2ll for r, f in fits}
-        fit, form = min(fits, key=lambda pair: pair[0].m2ll)
-        gain = current.fit.m2ll - fit.m2ll
-        if full_fit_below is not None and RETRY_MIN_DELTA_M2LL < gain < full_fit_below:
-            skipped = full_fit_below
-        else:
-            fit = _full_fit(setup, fit)
-            form_m2ll[form.name] = fit.m2ll
+        (fit,) = yield [("full", fit)]
+        form_m2ll[form.name] = fit.m2ll
     return _candidate_result(
         current, name, step, fit, len(forms), form.name, form_m2ll, only_first, skipped
     )
+
+
+def full_fit_threshold(linear: Sequence[CandidateResult]) -> float | None:
+    """The ``full_fit_below`` of a step's simulated families, from its linear families'
+    candidates (:data:`FULL_FIT_RATIO`)."""
+    lead = max((r.delta_m2ll for r in linear), default=0.0) / FULL_FIT_RATIO
+    return lead if lead >= FULL_FIT_MIN_M2LL else None
+
+
+def run_task(setup: Setup, current: Current, task: Task) -> FitResult:
+    """One fit of a :func:`candidate_plan`."""
+    kind, *args = task
+    if kind == "form":
+        return _fit_form(setup, current, *args)
+    return _full_fit(setup, *args)
 
 
 def _full_fit(setup: Setup, screened: FitResult, relative_stop: bool = True) -> FitResult:
@@ -690,10 +772,15 @@ def needs_held_out(setup: Setup, r: CandidateResult) -> bool:
 def held_out_folds(
     setup: Setup, current: Current, r: CandidateResult
 ) -> tuple[list[np.ndarray], list[float], dict[str, float]]:
-    """:func:`_fold_eval` of the candidate ``r`` fitted at this step (as a worker runs it)."""
+    """:func:`_fold_eval` of the candidate ``r`` fitted at this step."""
+    return joined_folds([held_out_fold(setup, current, r, i) for i in range(len(setup.folds))])
+
+
+def held_out_fold(setup: Setup, current: Current, r: CandidateResult, i: int) -> FoldResult:
+    """Fold ``i`` of :func:`held_out_folds` (as a worker runs it)."""
     new = r.fit.spec.start()[current.spec.n_free :]
-    starts = [np.concatenate([x, new]) for x in current.fold_x]
-    return _fold_eval(setup, r.fit.spec, current.fit.arms, starts)
+    start = np.concatenate([current.fold_x[i], new])
+    return _one_fold(setup, r.fit.spec, current.fit.arms, i, start, None)
 
 
 def add_held_out(
@@ -832,25 +919,11 @@ def _limit_threads() -> AbstractContextManager:
     return threadpool_limits(1)
 
 
-def _worker_eval(
-    setup: object,
-    current: Current,
-    name: str,
-    step: int,
-    first_form: str | None = None,
-    full_fit_below: float | None = None,
-) -> CandidateResult:
-    """One candidate in a worker; ``setup``: the handle of :mod:`analysis.executors` that
-    brings the set-up once per worker (a Dask worker has no initializer to install it)."""
+def in_worker(fn: Callable[..., Any], setup: object, *args: Any) -> Any:
+    """``fn(set-up, *args)`` as a task: ``setup`` is the handle of :mod:`analysis.executors`
+    that brings the set-up once per worker (a Dask worker has no initializer to install it)."""
     with _limit_threads():
-        return evaluate_candidate(
-            shared_value(setup), current, name, step, first_form, full_fit_below
-        )
-
-
-def _worker_complete(setup: object, current: Current, r: CandidateResult) -> CandidateResult:
-    with _limit_threads():
-        return complete_full_fit(shared_value(setup), current, r)
+        return fn(shared_value(setup), *args)
 
 
 @dataclass
@@ -914,25 +987,10 @@ def select(
             first_forms: dict[str, str],
             below: float | None,
         ) -> list[CandidateResult]:
-            """The candidates ``batch`` (``below``: see :func:`evaluate_candidate`); what
-            the time limit leaves unevaluated goes to ``undone``."""
-            nonlocal executor
+            """The candidates ``batch`` here, one after another (``below``: see
+            :func:`evaluate_candidate`); what the time limit leaves unevaluated goes to
+            ``undone``."""
             results: list[CandidateResult] = []
-            if executor is not None:
-                futs = {
-                    executor.submit(
-                        _worker_eval, shared, current, n, step, first_forms.get(n), below
-                    ): n
-                    for n in batch
-                }
-                done, pending = wait(futs)
-                results = [f.result() for f in futs if f in done]
-                if pending:
-                    _drop(pending, executor, own_pool)
-                    executor = None
-                    names_left = ", ".join(futs[f] for f in futs if f in pending)
-                    undone.append(f"step {step}: {names_left} not evaluated")
-                return results
             for i, n in enumerate(batch):
                 if late():
                     undone.append(f"step {step}: {', '.join(batch[i:])} not evaluated")
@@ -943,6 +1001,105 @@ def select(
                     evaluate_candidate(setup, current, n, step, first_forms.get(n), below)
                 )
             return results
+
+        def evaluate_pooled(
+            current: Current,
+            linear: list[str],
+            simulated: list[str],
+            step: int,
+            first_forms: dict[str, str],
+        ) -> list[CandidateResult]:
+            """:func:`evaluate`'s candidates, linear and simulated, on the executor: every
+            fit of their plans (:func:`candidate_plan`) as its own task, submitted as soon
+            as the plan asks for it; the simulated families' threshold as soon as the
+            linear ones are evaluated. The same fits as :func:`evaluate`'s, with the same
+            results; only the order of their running differs."""
+            nonlocal executor
+            assert executor is not None
+            pool = executor
+            plans = {
+                n: candidate_plan(
+                    current, n, step, first_forms.get(n), None if n in linear else PENDING
+                )
+                for n in linear + simulated
+            }
+            done_: dict[str, CandidateResult] = {}
+            parts: dict[str, list] = {}
+            futs: dict[cf.Future, tuple[str, int]] = {}
+            waiting: list[str] = []  # plans that asked for the threshold
+            ready: list[tuple] = []  # fits not yet submitted (a heap)
+            order = itertools.count()
+            # On our own pool, no more fits queued than it has workers, so that a fit asked
+            # for later can still go first; an executor we were given has its own order.
+            in_flight = jobs if own_pool else math.inf
+            threshold: list[float | None] = []  # once known
+
+            def advance(n: str, value: Any) -> None:
+                try:
+                    request = plans[n].send(value)
+                except StopIteration as stop:
+                    done_[n] = stop.value
+                    release()
+                    return
+                if request == PENDING:
+                    if threshold:
+                        advance(n, threshold[0])
+                    else:
+                        waiting.append(n)
+                    return
+                parts[n] = [None] * len(request)
+                for i, task in enumerate(request):
+                    key = (n not in linear, task[0] != "full", next(order))
+                    heapq.heappush(ready, (*key, n, i, task))
+                pump()
+
+            def pump() -> None:
+                """Submit ready fits while a worker is free: the linear families' first
+                (their gains set the threshold the simulated families' full fits wait
+                for), and of each kind the full fits first (the longest: started last,
+                one had run alone at the end of a step)."""
+                while ready and len(futs) < in_flight:
+                    *_, n, i, task = heapq.heappop(ready)
+                    futs[pool.submit(in_worker, run_task, shared, current, task)] = (n, i)
+
+            def release() -> None:
+                if threshold or not all(n in done_ for n in linear):
+                    return
+                threshold.append(full_fit_threshold([done_[n] for n in linear]))
+                for n in list(waiting):
+                    waiting.remove(n)
+                    advance(n, threshold[0])
+
+            for n in plans:
+                advance(n, None)
+            release()  # (no linear family at all)
+            while futs:
+                finished = wait_any(set(futs))
+                if finished is None:
+                    ready.clear()
+                    _drop(set(futs), pool, own_pool)
+                    executor = None
+                    left = [n for n in plans if n not in done_]
+                    undone.append(f"step {step}: {', '.join(left)} not evaluated")
+                    break
+                for f in finished:
+                    n, i = futs.pop(f)
+                    parts[n][i] = f.result()
+                    if all(p is not None for p in parts[n]):
+                        advance(n, parts.pop(n))
+                pump()
+            return [done_[n] for n in plans if n in done_]
+
+        def wait_any(futs: set) -> set | None:
+            """The futures of ``futs`` done, once one is; None at the time limit."""
+            while True:
+                left = deadline - clock() if math.isfinite(deadline) else None
+                if left is not None and left <= 0:
+                    return None
+                timeout = None if left is None else max(left / per_wall, 0.05)
+                d, _ = cf.wait(futs, timeout, return_when=cf.FIRST_COMPLETED)
+                if d:
+                    return d
 
         def wait(futs: dict) -> tuple[set, set]:
             """cf.wait for ``futs`` until done or the time limit (done, pending)."""
@@ -956,7 +1113,25 @@ def select(
                 done |= d
             return done, pending
 
-        current = make_current(setup, setup.spec(), setup.base)
+        def fold_eval(
+            spec: ModelSpec,
+            arms: dict[str, ArmParams],
+            x_starts: Sequence[np.ndarray] | None = None,
+            relative_stop: bool | None = None,
+        ) -> tuple[list[np.ndarray], list[float], dict[str, float]]:
+            """:func:`_fold_eval` of a model the main process holds: each fold a task on
+            the executor where there is one (the baseline's took 3.5 s of a sensor-delay
+            study's wall time while the workers waited)."""
+            if executor is None:
+                return _fold_eval(setup, spec, arms, x_starts, relative_stop)
+            starts = [None] * len(setup.folds) if x_starts is None else list(x_starts)
+            futs = [
+                executor.submit(in_worker, _one_fold, shared, spec, arms, i, x0, relative_stop)
+                for i, x0 in enumerate(starts)
+            ]
+            return joined_folds([f.result() for f in futs])
+
+        current = make_current(setup, setup.spec(), setup.base, fold_eval)
         steps: list[list[CandidateResult]] = []
         retained: list[CandidateResult] = []
         for step in range(1, MAX_MECHANISMS + 1):
@@ -973,14 +1148,16 @@ def select(
             # family is worth its full fit (FULL_FIT_RATIO; only with a held-out check, which
             # is what makes a candidate far below the leader one that cannot be chosen).
             linear = [n for n in remaining if not setup.folds or is_linear_family(n)]
-            results = evaluate(current, linear, step, first_forms, None)
             simulated = [n for n in remaining if n not in linear]
-            if simulated and undone:
-                undone.append(f"step {step}: {', '.join(simulated)} not evaluated")
-            elif simulated:
-                lead = max((r.delta_m2ll for r in results), default=0.0) / FULL_FIT_RATIO
-                below = lead if lead >= FULL_FIT_MIN_M2LL else None
-                results += evaluate(current, simulated, step, first_forms, below)
+            if executor is not None:
+                results = evaluate_pooled(current, linear, simulated, step, first_forms)
+            else:
+                results = evaluate(current, linear, step, first_forms, None)
+                if simulated and undone:
+                    undone.append(f"step {step}: {', '.join(simulated)} not evaluated")
+                elif simulated:
+                    below = full_fit_threshold(results)
+                    results += evaluate(current, simulated, step, first_forms, below)
             results.sort(key=lambda r: remaining.index(r.name))
             if undone:
                 # Cut before their held-out stage: say so rather than "does not predict".
@@ -1000,38 +1177,126 @@ def select(
             best = max(passing, key=key)
             best.equally_good = confusable(best, passing, held_out=bool(setup.folds))
             retained.append(best)
-            current = current_after(setup, best)
+            with simulations_on(executor, shared, None, jobs):
+                current = current_after(setup, best, fold_eval)
+        final_spec = current.spec
+        final = current.fit
+        if final_spec.n_free and late():
+            undone.append(
+                "the retained model's final re-fit (own noise model, more remnant "
+                "realisations) not done: its parameters are those of the selection"
+            )
+        elif final_spec.n_free:
+            if progress:
+                progress("final fit")
+            final = _final_fit(setup, final_spec, final, executor, shared, jobs)
+            _confirm_refits(setup, retained, final)
     finally:
         if own_pool and executor is not None:
             executor.shutdown()
-    final_spec = current.spec
-    final = current.fit
-    if final_spec.n_free and late():
-        undone.append(
-            "the retained model's final re-fit (own noise model, more remnant realisations) "
-            "not done: its parameters are those of the selection"
-        )
-    elif final_spec.n_free:
-        # The retained model's parameters: with the noise re-estimated from its own residual
-        # (the baseline's residual holds the distortion the mechanism explains, which
-        # under-weights the unexcited bins), and for a nonlinear mechanism from more remnant
-        # realisations (one biases its parameters towards zero by a few per cent).
-        if progress:
-            progress("final fit")
-        if needs_remnant(final_spec.mechanisms(final.x)) and K_REMNANT_FINAL > setup.n_remnant:
-            set_remnants(setup.trials, final.arms, K_REMNANT_FINAL)
-            setup.n_remnant = K_REMNANT_FINAL
-        if final_spec.mechanisms(final.x).sensor_delay.active:
-            for t in setup.trials + setup.fam:
-                t.undo_reading_delay = True
-        setup.final_noise = noise_model(setup.trials, final.simulated)
-        a0 = start_arms(setup, setup.trials, final_spec, setup.final_noise, final.x, final.arms)
-        final = fit_model(setup.trials, final_spec, setup.final_noise, a0, x0=final.x)
-        final = _out_of_corners(setup.trials, final_spec, setup.final_noise, final, {})
-        _confirm_refits(setup, retained, final)
     return Selection(
         steps, retained, final, final_spec, setup.base, current.fold_x, current.fit, undone
     )
+
+
+def _final_fit(
+    setup: Setup,
+    spec: ModelSpec,
+    fit: FitResult,
+    executor: cf.Executor | None,
+    shared: object,
+    jobs: int,
+) -> FitResult:
+    """The retained model's parameters: with the noise re-estimated from its own residual
+    (the baseline's residual holds the distortion the mechanism explains, which
+    under-weights the unexcited bins), and for a nonlinear mechanism from more remnant
+    realisations (one biases its parameters towards zero by a few per cent).
+
+    Its simulations run on the selection's pool where there is one: this fit was a sixth to
+    a fifth of a friction study's wall time, in one process while the workers waited."""
+    mech = spec.mechanisms(fit.x)
+    remnant_arms = None
+    if needs_remnant(mech) and K_REMNANT_FINAL > setup.n_remnant:
+        remnant_arms = fit.arms
+        set_remnants(setup.trials, fit.arms, K_REMNANT_FINAL)
+        setup.n_remnant = K_REMNANT_FINAL
+    if mech.sensor_delay.active:
+        for t in setup.trials + setup.fam:
+            t.undo_reading_delay = True
+    setup.final_noise = noise_model(setup.trials, fit.simulated)
+    state = TrialState(uuid.uuid4().hex, remnant_arms, setup.n_remnant, mech.sensor_delay.active)
+    setup.trial_state = state.token  # this process's trials have it (an executor may share them)
+    with simulations_on(executor, shared, state, jobs):
+        a0 = start_arms(setup, setup.trials, spec, setup.final_noise, fit.x, fit.arms)
+        final = fit_model(setup.trials, spec, setup.final_noise, a0, x0=fit.x)
+        return _out_of_corners(setup.trials, spec, setup.final_noise, final, {})
+
+
+@contextmanager
+def simulations_on(
+    executor: cf.Executor | None, shared: object, state: TrialState | None, jobs: int
+) -> Iterator[None]:
+    """The fits of the main process within run their simulations on ``executor`` (none:
+    here); ``state``: what the workers' trials need applied (None: nothing)."""
+    if executor is None:
+        yield
+        return
+    state = state or TrialState("", None, 0, False)
+    token = SPECTRA_MAP.set(_pool_spectra(executor, shared, state, max(jobs, 2)))
+    try:
+        yield
+    finally:
+        SPECTRA_MAP.reset(token)
+
+
+@dataclass(frozen=True)
+class TrialState:
+    """What the main process changed on the set-up's trials for the final fit, after the
+    pool's workers got their copy: each worker applies it to its own once (``token``)."""
+
+    token: str
+    remnant_arms: dict[str, ArmParams] | None  # the arms the remnants are reconstructed for
+    n_remnant: int
+    undo_reading_delay: bool
+
+    def apply(self, setup: Setup) -> None:
+        if not self.token or setup.trial_state == self.token:
+            return
+        if self.remnant_arms is not None:
+            set_remnants(setup.trials, self.remnant_arms, self.n_remnant)
+            setup.n_remnant = self.n_remnant
+        if self.undo_reading_delay:
+            for t in setup.trials + setup.fam:
+                t.undo_reading_delay = True
+        setup.trial_state = self.token
+
+
+def _pool_spectra(
+    executor: cf.Executor, shared: object, state: TrialState, n_tasks: int
+) -> Callable[[list[SpectraJob]], list[np.ndarray]]:
+    """A :data:`~analysis.diagnosis.fit.SPECTRA_MAP` that splits the jobs into ``n_tasks``
+    runs of consecutive jobs, one task each (the trials travel as their labels)."""
+
+    def run(jobs: list[SpectraJob]) -> list[np.ndarray]:
+        labelled = [(t.label, arm, mech) for t, arm, mech in jobs]
+        size = -(-len(labelled) // n_tasks)
+        futs = [
+            executor.submit(in_worker, _spectra_here, shared, state, labelled[i : i + size])
+            for i in range(0, len(labelled), size)
+        ]
+        return [ys for f in futs for ys in f.result()]
+
+    return run
+
+
+def _spectra_here(
+    setup: Setup, state: TrialState, jobs: list[tuple[str, ArmParams, Mechanisms]]
+) -> list[np.ndarray]:
+    """A task of :func:`_pool_spectra`: each job's spectra, on this worker's trials with
+    ``state`` applied."""
+    state.apply(setup)
+    trials = {t.label: t for t in setup.trials}
+    return [simulated_spectra(trials[label], arm, mech) for label, arm, mech in jobs]
 
 
 def retried(names: Sequence[str], steps: Sequence[Sequence[CandidateResult]]) -> list[str]:
@@ -1052,7 +1317,7 @@ def retried(names: Sequence[str], steps: Sequence[Sequence[CandidateResult]]) ->
     return [n for n in names if before.get(n, -math.inf) > RETRY_MIN_DELTA_M2LL]
 
 
-def current_after(setup: Setup, best: CandidateResult) -> Current:
+def current_after(setup: Setup, best: CandidateResult, folds: FoldEval | None = None) -> Current:
     """The model the next step adds to: the retained candidate ``best`` as judged; or, where
     it was retained far from the noise floor (a lack of fit above
     :data:`~analysis.diagnosis.fit.RELATIVE_STOP_MIN_LACK`, where its fits may have stopped at
@@ -1066,7 +1331,12 @@ def current_after(setup: Setup, best: CandidateResult) -> Current:
     fit = _full_fit(setup, best.fit, relative_stop=False)
     fold_x, fold_cost = best.fold_x, best.fold_cost
     if fold_x:
-        fold_x, fold_cost, _ = _fold_eval(setup, spec, fit.arms, fold_x, relative_stop=False)
+        args = (spec, fit.arms, fold_x)
+        fold_x, fold_cost, _ = (
+            _fold_eval(setup, *args, relative_stop=False)
+            if folds is None
+            else folds(*args, relative_stop=False)
+        )
     return Current(spec, fit, fold_x, fold_cost)
 
 
@@ -1105,6 +1375,7 @@ def _held_out_stage(
     best = -math.inf
 
     def cut(left: list[CandidateResult]) -> None:
+        left = list({id(r): r for r in left}.values())  # a candidate's folds: named once
         if not left:
             return
         for r in left:
@@ -1113,47 +1384,57 @@ def _held_out_stage(
         undone.append(f"step {step}: held-out check of {names} not done")
 
     def each(
-        batch: list[CandidateResult],
-        here: Callable[[CandidateResult], Any],
-        worker: Callable[..., Any],
-        take: Callable[[CandidateResult, Any], None],
+        batch: list[tuple[CandidateResult, tuple]],
+        fn: Callable[..., Any],
+        take: Callable[..., None],
     ) -> bool:
-        """``here(r)`` for each of the batch (``worker`` on the executor), its result given
-        to ``take``; False when the time limit left some undone (those are cut)."""
+        """``fn(setup, current, r, *args)`` for each ``(r, args)`` of the batch (on the
+        executor where there is one), its result given to ``take(r, *args, result)``; False
+        when the time limit left some undone (their candidates are cut)."""
         nonlocal executor
         if executor is None:
-            for i, r in enumerate(batch):
+            for i, (r, args) in enumerate(batch):
                 if late():
-                    cut(batch[i:])
+                    cut([b[0] for b in batch[i:]])
                     return False
-                take(r, here(r))
+                take(r, *args, fn(setup, current, r, *args))
             return True
-        futs = {executor.submit(worker, shared, current, r): r for r in batch}
+        futs = {
+            executor.submit(in_worker, fn, shared, current, r, *args): (r, args)
+            for r, args in batch
+        }
         done, pending = wait(futs)
-        for f, r in futs.items():
+        for f, (r, args) in futs.items():
             if f in done:
-                take(r, f.result())
+                take(r, *args, f.result())
         if pending:
             _drop(pending, executor, own_pool)
             executor = None
-            cut([futs[f] for f in futs if f in pending])
+            cut([futs[f][0] for f in futs if f in pending])
             return False
         return True
 
     def complete(batch: list[CandidateResult]) -> bool:
         """The full fits of the batch's candidates fitted as far as their screening only,
         in place."""
-        short = [r for r in batch if r.full_fit_skipped is not None]
-        return each(short, lambda r: complete_full_fit(setup, current, r), _worker_complete, _take)
+        short = [(r, ()) for r in batch if r.full_fit_skipped is not None]
+        return each(short, complete_full_fit, _take)
 
     def run(batch: list[CandidateResult]) -> bool:
-        """The batch's folds."""
-        return each(
-            batch,
-            lambda r: held_out_folds(setup, current, r),
-            _worker_folds,
-            lambda r, folds: add_held_out(setup, current, r, folds),
+        """The batch's folds, each fold its own task (a candidate's two folds share nothing:
+        on two workers the first candidate's folds had run alone, one worker idle)."""
+        parts: dict[int, dict[int, FoldResult]] = {id(r): {} for r in batch}
+        n = len(setup.folds)
+        ok = each(
+            [(r, (i,)) for r in batch for i in range(n)],
+            held_out_fold,
+            lambda r, i, part: parts[id(r)].__setitem__(i, part),
         )
+        for r in batch:
+            if len(parts[id(r)]) == n and not r.held_out_undone:
+                folds = joined_folds([parts[id(r)][i] for i in range(n)])
+                add_held_out(setup, current, r, folds)
+        return ok
 
     if not todo:
         return executor
@@ -1177,7 +1458,11 @@ def _held_out_stage(
     if not complete(rest):
         cut([r for r in rest if r.full_fit_skipped is None and needs_held_out(setup, r)])
         return executor
-    rest = [r for r in rest if needs_held_out(setup, r)]
+    # The simulated families' folds first: the longest (a friction's 12 s fold had started
+    # last and run alone).
+    rest = sorted(
+        (r for r in rest if needs_held_out(setup, r)), key=lambda r: is_linear_family(r.name)
+    )
     if rest:
         run(rest)
     return executor
@@ -1187,13 +1472,6 @@ def _take(r: CandidateResult, new: CandidateResult) -> None:
     """``r`` becomes ``new`` in place (the step's list holds ``r``)."""
     for f in fields(CandidateResult):
         setattr(r, f.name, getattr(new, f.name))
-
-
-def _worker_folds(
-    setup: object, current: Current, r: CandidateResult
-) -> tuple[list[np.ndarray], list[float], dict[str, float]]:
-    with _limit_threads():
-        return held_out_folds(shared_value(setup), current, r)
 
 
 def _drop(pending: set, executor: cf.Executor, own_pool: bool) -> None:

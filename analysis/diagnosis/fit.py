@@ -62,6 +62,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Sequence
+from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -397,17 +398,36 @@ def arm_jacobian(
     return out
 
 
+SpectraJob = tuple[TrialData, ArmParams, Mechanisms]
+# Where a fit's simulations run: in this process (None), or through a function that maps
+# jobs to their spectra, in order (the selection's pool, for the fits it runs in the main
+# process while its workers would wait: the final fit, see analysis.diagnosis.engine).
+SPECTRA_MAP: ContextVar[Callable[[list[SpectraJob]], list[np.ndarray]] | None] = ContextVar(
+    "spectra_map", default=None
+)
+
+
+def spectra_of(jobs: list[SpectraJob]) -> list[np.ndarray]:
+    """:func:`simulated_spectra` of each job, through :data:`SPECTRA_MAP` where one is set."""
+    mapper = SPECTRA_MAP.get()
+    if mapper is None or len(jobs) < 2:
+        return [simulated_spectra(t, arm, mech) for t, arm, mech in jobs]
+    return mapper(jobs)
+
+
 def _arm_jacobian_fd(trials, st, W, mech, names=ARM_FREE) -> dict[str, np.ndarray]:
     """Forward differences of the simulator in log(parameter): exact for any mechanism, one
     simulation per trial and name."""
     A = {t.label: np.empty((len(st.r[t.label]), len(names))) for t in trials}
-    for j, name in enumerate(names):
-        for t in trials:
-            arm = st.arms[t.label]
-            lo, hi = ARM_BOUNDS[name]
-            bumped = min(max(getattr(arm, name) * math.exp(ARM_STEP), lo), hi)
-            Ys = simulated_spectra(t, replace(arm, **{name: bumped}), mech)
-            A[t.label][:, j] = (W[t.label](residual_vectors(t, Ys)) - st.r[t.label]) / ARM_STEP
+    cells = [(j, t) for j in range(len(names)) for t in trials]
+    jobs = []
+    for j, t in cells:
+        arm = st.arms[t.label]
+        lo, hi = ARM_BOUNDS[names[j]]
+        bumped = min(max(getattr(arm, names[j]) * math.exp(ARM_STEP), lo), hi)
+        jobs.append((t, replace(arm, **{names[j]: bumped}), mech))
+    for (j, t), Ys in zip(cells, spectra_of(jobs), strict=True):
+        A[t.label][:, j] = (W[t.label](residual_vectors(t, Ys)) - st.r[t.label]) / ARM_STEP
     return A
 
 
@@ -527,8 +547,9 @@ def _evaluate(
 ) -> _State:
     mech = spec.mechanisms(x)
     Ysim, r = {}, {}
-    for t in trials:
-        Ysim[t.label] = simulated_spectra(t, arms[t.label], mech)
+    spectra = spectra_of([(t, arms[t.label], mech) for t in trials])
+    for t, Ys in zip(trials, spectra, strict=True):
+        Ysim[t.label] = Ys
         r[t.label] = W[t.label](residual_vectors(t, Ysim[t.label]))
         if not np.all(np.isfinite(r[t.label])) or np.max(np.abs(r[t.label])) > UNSTABLE_RESIDUAL:
             # An unstable closed loop (a large reflex gain can make one): worse than anything.
@@ -672,6 +693,7 @@ def fit_model(
             if t.subject in col:
                 B[t.label][:, col[t.subject]] = A[t.label][:, len(ARM_FREE)]
             A[t.label] = A[t.label][:, : len(ARM_FREE)]
+        steps, jobs = [], []
         for m in range(n_m):
             xm = st.x.copy()
             h = specs[m].step
@@ -679,9 +701,10 @@ def fit_model(
                 h = -h
             xm[m] += h
             mech_m = spec.mechanisms(xm)
-            for t in trials:
-                Ys = simulated_spectra(t, st.arms[t.label], mech_m)
-                B[t.label][:, m] = (W[t.label](residual_vectors(t, Ys)) - r[t.label]) / h
+            steps += [(m, t, h) for t in trials]
+            jobs += [(t, st.arms[t.label], mech_m) for t in trials]
+        for (m, t, h), Ys in zip(steps, spectra_of(jobs), strict=True):
+            B[t.label][:, m] = (W[t.label](residual_vectors(t, Ys)) - r[t.label]) / h
         for t in trials:
             # A diverging neighbour of the current point says nothing about the slope here.
             for J in (A, B):

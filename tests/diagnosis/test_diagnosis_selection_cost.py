@@ -63,10 +63,11 @@ def _stage(results, held_out: dict[str, float], executor=None, late=False) -> li
     setup = SimpleNamespace(folds=[((), ()), ((), ())])
     asked: list[str] = []
 
-    def folds(setup_, current_, r):
-        asked.append(r.name)
+    def fold(setup_, current_, r, i):
+        if i == 0:  # a candidate's folds run as separate tasks: named once
+            asked.append(r.name)
         g = held_out[r.name]
-        return [np.zeros(1), np.zeros(1)], [-g / 2, -g / 2], {"0:t": -g / 2, "1:t": -g / 2}
+        return np.zeros(1), -g / 2, {f"{i}:t": -g / 2}
 
     def wait(futs):
         if late:  # as select's wait at the limit: nothing more done, the rest pending
@@ -75,7 +76,7 @@ def _stage(results, held_out: dict[str, float], executor=None, late=False) -> li
 
     undone: list[str] = []
     mp = pytest.MonkeyPatch()
-    mp.setattr(engine, "held_out_folds", folds)
+    mp.setattr(engine, "held_out_fold", fold)
     try:
         engine._held_out_stage(
             setup, current, results, 1, executor, setup, False, lambda: late, wait, undone
@@ -290,7 +291,7 @@ def _select_order(monkeypatch, gains: dict[str, float], folds: bool) -> list[tup
 
     base = _fit(None, 1e6)
     monkeypatch.setattr(engine, "evaluate_candidate", evaluate)
-    monkeypatch.setattr(engine, "make_current", lambda s, spec, fit: Current(spec, fit, [], []))
+    monkeypatch.setattr(engine, "make_current", lambda s, spec, fit, *a: Current(spec, fit, [], []))
     monkeypatch.setattr(engine, "_held_out_stage", lambda setup, cur, res, step, ex, *a: ex)
     monkeypatch.setattr(engine, "judge", lambda results, held_out: None)  # none passes
     setup = SimpleNamespace(folds=[((), ())] if folds else [], spec=lambda: base.spec, base=base)
@@ -316,6 +317,67 @@ def test_the_linear_families_are_fitted_first_and_set_the_simulated_ones_thresho
     assert all(b is None for _, b in _select_order(monkeypatch, near, folds=True))
     calls = _select_order(monkeypatch, gains, folds=False)
     assert [n for n, _ in calls] == list(gains) and all(b is None for _, b in calls)
+
+
+def _pooled_step(monkeypatch, gains: dict[str, float], executor) -> tuple[list, list[str]]:
+    """select()'s first step with stand-in fits (a form's screening gains ``gains[form]``,
+    or the family's gain where it has one form; a full fit twice its screening), none
+    retained; returns the step's candidates and the fits in the order they ran."""
+    ran: list[str] = []
+
+    def fit_form(setup, current_, cand, max_iter=engine.MAX_ITER):
+        ran.append(f"{cand.name}:{cand.form.name}")
+        time.sleep(0.002)  # let the two workers' fits interleave
+        f = _fit(cand.name, 1e6 - gains.get(cand.form.name, gains.get(cand.name, 0.0)))
+        return FitResult(**{**f.__dict__, "spec": ModelSpec(Mechanisms(), (cand,), 250.0)})
+
+    def full(setup, screened, relative_stop=True):
+        ran.append(f"{screened.spec.free[0].name}:full")
+        gain = 2.0 * (1e6 - screened.m2ll)
+        return FitResult(**{**screened.__dict__, "cost_trial": {"t": (1e6 - gain) / 2.0}})
+
+    base = _fit(None, 1e6)
+    monkeypatch.setattr(engine, "_fit_form", fit_form)
+    monkeypatch.setattr(engine, "_full_fit", full)
+    monkeypatch.setattr(engine, "make_current", lambda s, spec, fit, *a: Current(spec, fit, [], []))
+    monkeypatch.setattr(engine, "_held_out_stage", lambda setup, cur, res, step, ex, *a: ex)
+    monkeypatch.setattr(engine, "judge", lambda results, held_out: None)  # none passes
+    monkeypatch.setattr(engine, "share", lambda ex, value: value)  # threads share the set-up
+    setup = SimpleNamespace(folds=[((), ())], spec=lambda: base.spec, base=base)
+    families = ["reflex_delay", "coulomb_friction", "actuator_lag", "stiffness_nonlinearity",
+                "sensor_delay", "grip_scheduled_stiffness"]  # fmt: skip
+    sel = engine.select(setup, families, executor=executor)
+    return sel.steps[0], ran
+
+
+def test_a_pool_runs_the_forms_of_a_family_as_tasks_with_the_sequential_results(monkeypatch):
+    # Every family's forms (the linear families first, their best gain setting the threshold
+    # of the simulated ones' full fits) run as separate tasks on a pool; what each candidate
+    # gets is what the sequential evaluation gives it, the skipped full fit included.
+    gains = {f.name: 40_000.0 + 1_000.0 * i for i, f in enumerate(candidate("reflex_delay").forms)}
+    gains |= {"sensor_delay": 3.0e6, "actuator_lag": 2.0e6, "grip_scheduled_stiffness": 900.0}
+    for name, g in (
+        ("coulomb_friction", [2e6, 2.2e6, 2.1e6]),
+        ("stiffness_nonlinearity", [5e4, 9e4, 7e4]),
+    ):
+        gains |= dict(zip([f.name for f in candidate(name).forms], g, strict=True))
+    here, ran_here = _pooled_step(monkeypatch, gains, None)
+    with cf.ThreadPoolExecutor(2) as ex:
+        pooled, ran_pooled = _pooled_step(monkeypatch, gains, ex)
+    assert sorted(ran_pooled) == sorted(ran_here)  # the same fits, in another order
+    assert ran_pooled != ran_here
+    fields = ("name", "form", "delta_m2ll", "delta_bic", "form_m2ll", "full_fit_skipped")
+    assert [[getattr(r, f) for f in fields] for r in pooled] == [
+        [getattr(r, f) for f in fields] for r in here
+    ]
+    # The threshold: 1/FULL_FIT_RATIO of the best linear gain, the lag's after its full fit
+    # (4e6; its screening, 2e6, is below the sensor delay's 3e6): it waited for that fit.
+    # Stiffening's best screening (9e4) and the grip map's are below it, friction's above.
+    by = {r.name: r for r in pooled}
+    for name in ("stiffness_nonlinearity", "grip_scheduled_stiffness"):
+        assert by[name].full_fit_skipped == 4e6 / engine.FULL_FIT_RATIO
+    assert by["coulomb_friction"].full_fit_skipped is None
+    assert by["coulomb_friction"].delta_m2ll == 4.4e6
 
 
 @pytest.mark.parametrize("threads", [False, True])
