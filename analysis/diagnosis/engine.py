@@ -637,7 +637,8 @@ def evaluate_candidate(
     request: Any = next(plan)
     while True:
         try:
-            request = plan.send([run_task(setup, current, task) for task in request])
+            assert isinstance(request, Fits)  # (never PENDING: the threshold is given)
+            request = plan.send([run_task(setup, current, task) for task in request.tasks])
         except StopIteration as stop:
             return stop.value
 
@@ -650,19 +651,28 @@ PENDING = "pending"
 Task = tuple[Any, ...]
 
 
+@dataclass(frozen=True)
+class Fits:
+    """A :func:`candidate_plan`'s request: ``tasks``, fits independent of one another (its
+    results come back in their order); ``then``: the fits it asks for next unless these
+    results say otherwise (a pool may start them early on a worker that would wait)."""
+
+    tasks: list[Task]
+    then: list[Task] = field(default_factory=list)
+
+
 def candidate_plan(
     current: Current,
     name: str,
     step: int,
     first_form: str | None = None,
     full_fit_below: float | str | None = None,
-) -> Generator[list[Task] | str, Any, CandidateResult]:
-    """:func:`evaluate_candidate` as a plan: it yields lists of :data:`Task`s, each list's
-    fits independent of one another, and is sent their results in order; with
-    ``full_fit_below`` :data:`PENDING` it yields PENDING when it needs that threshold, and
-    is sent it; it returns the candidate. On a pool each list's fits run at once: a family's
-    forms had been fitted one after another in one worker while the other waited (7.5 of a
-    friction study's 64 s at its second step)."""
+) -> Generator[Fits | str, Any, CandidateResult]:
+    """:func:`evaluate_candidate` as a plan: it yields :class:`Fits` and is sent their
+    results; with ``full_fit_below`` :data:`PENDING` it yields PENDING when it needs that
+    threshold, and is sent it; it returns the candidate. On a pool each request's fits run
+    at once: a family's forms had been fitted one after another in one worker while the
+    other waited (7.5 of a friction study's 64 s at its second step)."""
     family = candidate(name)
     forms = (
         (family.form_of(current.spec.base),) if family.is_on(current.spec.base) else family.forms
@@ -670,22 +680,23 @@ def candidate_plan(
     only_first = False
     skipped = None
     if len(forms) == 1:
-        (fit,) = yield [("form", family.with_form(forms[0]), MAX_ITER)]
+        (fit,) = yield Fits([("form", family.with_form(forms[0]), MAX_ITER)])
         return _candidate_result(current, name, step, fit, 1, forms[0].name, {}, False, None)
     # Each form gets a few iterations and the best of them the full fit: fitting every
     # form fully would cost as much as that many candidates.
     order = sorted(forms, key=lambda f: f.name != first_form)
-    (first,) = yield [("form", family.with_form(order[0]), FORM_SCREEN_ITER)]
-    fits = [(first, order[0])]
-    # At a later step a family whose first step's best form now improves nothing is not
-    # screened in its others: at the first step, against a baseline far from the data,
-    # every family "improved", and its forms were most of a later step's time.
-    only_first = (
-        order[0].name == first_form and current.fit.m2ll - first.m2ll < RETRY_MIN_DELTA_M2LL
-    )
-    if not only_first:
-        more = yield [("form", family.with_form(f), FORM_SCREEN_ITER) for f in order[1:]]
-        fits += list(zip(more, order[1:], strict=True))
+    screens = [("form", family.with_form(f), FORM_SCREEN_ITER) for f in order]
+    if order[0].name != first_form:
+        fits = list(zip((yield Fits(screens)), order, strict=True))
+    else:
+        # At a later step a family whose first step's best form now improves nothing is
+        # not screened in its others: at the first step, against a baseline far from the
+        # data, every family "improved", and its forms were most of a later step's time.
+        (first,) = yield Fits(screens[:1], then=screens[1:])
+        fits = [(first, order[0])]
+        only_first = current.fit.m2ll - first.m2ll < RETRY_MIN_DELTA_M2LL
+        if not only_first:
+            fits += list(zip((yield Fits(screens[1:])), order[1:], strict=True))
     form_m2ll = {f.name: r.m2ll for r, f in fits}
     fit, form = min(fits, key=lambda pair: pair[0].m2ll)
     gain = current.fit.m2ll - fit.m2ll
@@ -694,11 +705,22 @@ def candidate_plan(
     if full_fit_below is not None and RETRY_MIN_DELTA_M2LL < gain < float(full_fit_below):
         skipped = float(full_fit_below)
     else:
-        (fit,) = yield [("full", fit)]
+        (fit,) = yield Fits([("full", fit)])
         form_m2ll[form.name] = fit.m2ll
     return _candidate_result(
         current, name, step, fit, len(forms), form.name, form_m2ll, only_first, skipped
     )
+
+
+@dataclass(eq=False)
+class _Fit:
+    """A fit of a plan on a pool: "new", "spare" (a fit the plan may ask for next, for a
+    worker that would wait), "ready" (asked for), "running", "done" (``result``)."""
+
+    n: str  # the plan's family
+    task: Task
+    state: str = "new"
+    result: Any = None
 
 
 def full_fit_threshold(linear: Sequence[CandidateResult]) -> float | None:
@@ -1013,7 +1035,8 @@ def select(
             fit of their plans (:func:`candidate_plan`) as its own task, submitted as soon
             as the plan asks for it; the simulated families' threshold as soon as the
             linear ones are evaluated. The same fits as :func:`evaluate`'s, with the same
-            results; only the order of their running differs."""
+            results; only the order of their running differs, and on our own pool a worker
+            with nothing to do starts a fit a plan may ask for next (:class:`Fits`)."""
             nonlocal executor
             assert executor is not None
             pool = executor
@@ -1024,14 +1047,16 @@ def select(
                 for n in linear + simulated
             }
             done_: dict[str, CandidateResult] = {}
-            parts: dict[str, list] = {}
-            futs: dict[cf.Future, tuple[str, int]] = {}
-            waiting: list[str] = []  # plans that asked for the threshold
-            ready: list[tuple] = []  # fits not yet submitted (a heap)
+            asked: dict[str, list[_Fit]] = {}  # each plan's request, being fitted
+            early: dict[str, list[_Fit]] = {}  # fits a plan may ask for next
+            futs: dict[cf.Future, _Fit] = {}
+            ready: list[tuple] = []  # asked for, not yet submitted (a heap)
+            spare: list[_Fit] = []  # fits for a worker that would wait
             order = itertools.count()
             # On our own pool, no more fits queued than it has workers, so that a fit asked
             # for later can still go first; an executor we were given has its own order.
             in_flight = jobs if own_pool else math.inf
+            waiting: list[str] = []  # plans that asked for the threshold
             threshold: list[float | None] = []  # once known
 
             def advance(n: str, value: Any) -> None:
@@ -1039,28 +1064,55 @@ def select(
                     request = plans[n].send(value)
                 except StopIteration as stop:
                     done_[n] = stop.value
+                    for fit in early.pop(n, []):
+                        if fit.state == "spare":
+                            spare.remove(fit)
                     release()
                     return
-                if request == PENDING:
+                if not isinstance(request, Fits):  # PENDING
                     if threshold:
                         advance(n, threshold[0])
                     else:
                         waiting.append(n)
                     return
-                parts[n] = [None] * len(request)
-                for i, task in enumerate(request):
-                    key = (n not in linear, task[0] != "full", next(order))
-                    heapq.heappush(ready, (*key, n, i, task))
+                fits = []
+                offered = early.pop(n, [])
+                for task in request.tasks:
+                    match = [f for f in offered if f.task == task]
+                    fit = match[0] if match else _Fit(n, task)
+                    if match:
+                        offered.remove(fit)
+                    if fit.state in ("new", "spare"):
+                        if fit.state == "spare":
+                            spare.remove(fit)
+                        key = (n not in linear, task[0] != "full", next(order))
+                        heapq.heappush(ready, (*key, fit))
+                        fit.state = "ready"
+                    fits.append(fit)
+                for fit in offered:  # not asked for after all
+                    if fit.state == "spare":
+                        spare.remove(fit)
+                asked[n] = fits
+                if own_pool:
+                    early[n] = [_Fit(n, task, state="spare") for task in request.then]
+                    spare.extend(early[n])
+                answer(n)
+
+            def answer(n: str) -> None:
+                """Send plan ``n`` its request's results once they are all in."""
+                if n in asked and all(f.state == "done" for f in asked[n]):
+                    advance(n, [f.result for f in asked.pop(n)])
                 pump()
 
             def pump() -> None:
-                """Submit ready fits while a worker is free: the linear families' first
-                (their gains set the threshold the simulated families' full fits wait
-                for), and of each kind the full fits first (the longest: started last,
-                one had run alone at the end of a step)."""
-                while ready and len(futs) < in_flight:
-                    *_, n, i, task = heapq.heappop(ready)
-                    futs[pool.submit(in_worker, run_task, shared, current, task)] = (n, i)
+                """Submit fits while a worker is free: those asked for, the linear
+                families' first (their gains set the threshold the simulated families'
+                full fits wait for) and of each kind the full fits first (the longest:
+                started last, one had run alone at the end of a step); else a spare."""
+                while started and len(futs) < in_flight and (ready or spare):
+                    fit = heapq.heappop(ready)[-1] if ready else spare.pop(0)
+                    fit.state = "running"
+                    futs[pool.submit(in_worker, run_task, shared, current, fit.task)] = fit
 
             def release() -> None:
                 if threshold or not all(n in done_ for n in linear):
@@ -1070,24 +1122,29 @@ def select(
                     waiting.remove(n)
                     advance(n, threshold[0])
 
+            started = False  # (every plan's first request in before any fit is submitted)
             for n in plans:
                 advance(n, None)
+            started = True
             release()  # (no linear family at all)
-            while futs:
+            pump()
+            while len(done_) < len(plans):
+                # (Every plan not done has a fit asked for, or waits for the linear ones.)
+                assert futs, "candidate plans left without a fit to wait for"
                 finished = wait_any(set(futs))
                 if finished is None:
                     ready.clear()
+                    spare.clear()
                     _drop(set(futs), pool, own_pool)
                     executor = None
                     left = [n for n in plans if n not in done_]
                     undone.append(f"step {step}: {', '.join(left)} not evaluated")
                     break
                 for f in finished:
-                    n, i = futs.pop(f)
-                    parts[n][i] = f.result()
-                    if all(p is not None for p in parts[n]):
-                        advance(n, parts.pop(n))
-                pump()
+                    fit = futs.pop(f)
+                    fit.result, fit.state = f.result(), "done"
+                    answer(fit.n)
+            # (A spare fit still running is left to end: its result is not wanted.)
             return [done_[n] for n in plans if n in done_]
 
         def wait_any(futs: set) -> set | None:

@@ -21,9 +21,11 @@ fits.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import multiprocessing as mp
 import multiprocessing.connection as mp_connection
 import signal
 import time
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -378,6 +380,74 @@ def test_a_pool_runs_the_forms_of_a_family_as_tasks_with_the_sequential_results(
         assert by[name].full_fit_skipped == 4e6 / engine.FULL_FIT_RATIO
     assert by["coulomb_friction"].full_fit_skipped is None
     assert by["coulomb_friction"].delta_m2ll == 4.4e6
+
+
+def _two_steps(monkeypatch, jobs: int, log: Path) -> list[list]:
+    """select() with stand-in fits over two steps (the sensor delay retained at the first),
+    ``jobs`` processes; each fit's start and end appended to ``log``; returns the steps'
+    candidates as (name, form, Δ−2 log L, forms' −2 log L, full fit skipped below)."""
+    step1 = {"sensor_delay": 3e6, "coulomb_friction": 1e5, "stiffness_nonlinearity": 5e4}
+    # At the second step the friction's first form improves nothing (its others are not
+    # asked for), stiffening's improves (all its forms are).
+    step2 = {"coulomb_friction": 1.0, "stiffness_nonlinearity": 40.0}
+
+    def fit_form(setup, current_, cand, max_iter=engine.MAX_ITER):
+        step = 1 + current_.spec.n_free
+        i = [f.name for f in cand.forms].index(cand.form.name)
+        gain = (step1 if step == 1 else step2)[cand.name] * (1.0 + 0.1 * i)
+        with log.open("a") as f:
+            f.write(f"start {step} {cand.name} {i}\n")
+        time.sleep(0.3 if (step, cand.name) == (2, "stiffness_nonlinearity") else 0.01)
+        with log.open("a") as f:
+            f.write(f"end {step} {cand.name} {i}\n")
+        spec = ModelSpec(Mechanisms(), current_.spec.free + (cand,), 250.0)
+        f = _fit(cand.name, current_.fit.m2ll - gain)
+        return FitResult(**{**f.__dict__, "spec": spec, "x": spec.start() + 0.01})
+
+    def full(setup, screened, relative_stop=True):
+        return FitResult(**{**screened.__dict__, "cost_trial": {"t": screened.m2ll / 2 - 1.0}})
+
+    def judge(results, held_out):
+        for r in results:
+            r.passed = r.step == 1 and r.name == "sensor_delay"
+            r.held_out_gain = r.delta_m2ll
+
+    base = _fit(None, 1e6)
+    monkeypatch.setattr(engine, "_fit_form", fit_form)
+    monkeypatch.setattr(engine, "_full_fit", full)
+    monkeypatch.setattr(engine, "make_current", lambda s, spec, fit, *a: Current(spec, fit, [], []))
+    monkeypatch.setattr(engine, "_held_out_stage", lambda setup, cur, res, step, ex, *a: ex)
+    monkeypatch.setattr(engine, "judge", judge)
+    monkeypatch.setattr(
+        engine, "current_after", lambda s, best, *a: Current(best.fit.spec, best.fit, [], [])
+    )
+    monkeypatch.setattr(engine, "_final_fit", lambda setup, spec, fit, *a: fit)
+    monkeypatch.setattr(engine, "_confirm_refits", lambda *a: None)
+    setup = SimpleNamespace(folds=[((), ())], spec=lambda: base.spec, base=base)
+    sel = engine.select(setup, list(step1), jobs=jobs)
+    return [
+        [(r.name, r.form, r.delta_m2ll, r.form_m2ll, r.full_fit_skipped) for r in step]
+        for step in sel.steps
+    ]
+
+
+@pytest.mark.skipif(
+    mp.get_start_method() != "fork", reason="the stand-in fits reach the workers by fork"
+)
+def test_an_idle_worker_starts_the_forms_a_plan_may_ask_for_next(monkeypatch, tmp_path):
+    # At a later step a family is screened in its first step's best form first, and in its
+    # others only if that form improves −2 log L: on a pool, a worker with nothing else to do
+    # (the friction's first form, which improves nothing, ended early) starts those others
+    # meanwhile. The results are the sequential ones.
+    here = _two_steps(monkeypatch, 1, tmp_path / "here.log")
+    pooled = _two_steps(monkeypatch, 2, tmp_path / "pooled.log")
+    assert pooled == here and len(here) == 2
+    events = (tmp_path / "pooled.log").read_text().split("\n")
+    last = len(candidate("stiffness_nonlinearity").forms) - 1  # its first step's best form
+    first = events.index(f"end 2 stiffness_nonlinearity {last}")
+    assert "start 2 stiffness_nonlinearity 0" in events[:first]  # started early, and used
+    asked = sorted(e for e in (tmp_path / "here.log").read_text().split("\n") if e)
+    assert set(asked) <= {e for e in events if e}
 
 
 @pytest.mark.parametrize("threads", [False, True])
