@@ -163,6 +163,13 @@ def pool_cpu_clock(pool: cf.Executor | None) -> Callable[[], float] | None:
     return clock
 
 
+def travels_light(handle: object) -> bool:
+    """Whether a task's handle of :func:`share` or :func:`sharing_pool` is small: it does not
+    carry the value (an executor we were given that is not Dask's gets it with every task,
+    too dear for tasks of a few tens of milliseconds)."""
+    return not (isinstance(handle, Shared) and handle.pickled is not None)
+
+
 def shared_value(handle: object) -> Any:
     """In a task: the value behind a handle of :func:`share` or :func:`sharing_pool`."""
     if not isinstance(handle, Shared):

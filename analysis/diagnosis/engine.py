@@ -23,7 +23,8 @@ Greedy forward selection (:func:`select`)
       The one with the largest in-sample gain is tried first, and one whose in-sample gain is
       below a quarter of that one's held-out gain (if it can be retained) is not tried either
       (:func:`_held_out_stage`).
-    - The linear families (reflex, lag, sensor delay) are fitted first. A family that must be
+    - The linear families (reflex, lag, sensor delay) are fitted first (on a pool: their fits
+      go first, beside the others' screening). A family that must be
       simulated gets its best form's full fit only where its forms' screening gained at least
       1/``FULL_FIT_RATIO`` of the best linear family's gain (far from the noise floor only);
       else its screening stands, and it is fitted fully if the held-out stage could still
@@ -84,7 +85,13 @@ from steerlab.analysis.diagnosis.simulate import (
     simulated_spectra,
 )
 from steerlab.analysis.diagnosis.steady_state import is_linear_time_invariant
-from steerlab.analysis.executors import pool_cpu_clock, share, shared_value, sharing_pool
+from steerlab.analysis.executors import (
+    pool_cpu_clock,
+    share,
+    shared_value,
+    sharing_pool,
+    travels_light,
+)
 from steerlab.hardware.safety import SafetyLimits
 from steerlab.hardware.sim.mechanisms import Mechanisms
 from steerlab.hardware.sim.physiology import NOMINAL, ArmParams
@@ -721,6 +728,7 @@ class _Fit:
     task: Task
     state: str = "new"
     result: Any = None
+    error: BaseException | None = None  # what the fit raised, raised if the plan asks for it
 
 
 def full_fit_threshold(linear: Sequence[CandidateResult]) -> float | None:
@@ -1101,14 +1109,19 @@ def select(
             def answer(n: str) -> None:
                 """Send plan ``n`` its request's results once they are all in."""
                 if n in asked and all(f.state == "done" for f in asked[n]):
-                    advance(n, [f.result for f in asked.pop(n)])
+                    fits = asked.pop(n)
+                    for fit in fits:
+                        if fit.error is not None:
+                            raise fit.error
+                    advance(n, [f.result for f in fits])
                 pump()
 
             def pump() -> None:
-                """Submit fits while a worker is free: those asked for, the linear
-                families' first (their gains set the threshold the simulated families'
-                full fits wait for) and of each kind the full fits first (the longest:
-                started last, one had run alone at the end of a step); else a spare."""
+                """Submit fits while fewer than ``in_flight`` run (on our own pool: while a
+                worker is free): those asked for, the linear families' first (their gains
+                set the threshold the simulated families' full fits wait for) and of each
+                kind the full fits first (the longest: started last, one had run alone at
+                the end of a step); else a spare."""
                 while started and len(futs) < in_flight and (ready or spare):
                     fit = heapq.heappop(ready)[-1] if ready else spare.pop(0)
                     fit.state = "running"
@@ -1142,7 +1155,10 @@ def select(
                     break
                 for f in finished:
                     fit = futs.pop(f)
-                    fit.result, fit.state = f.result(), "done"
+                    # (A spare's failure is its plan's only if the plan asks for that fit.)
+                    fit.error = f.exception()
+                    fit.result = None if fit.error else f.result()
+                    fit.state = "done"
                     answer(fit.n)
             # (A spare fit still running is left to end: its result is not wanted.)
             return [done_[n] for n in plans if n in done_]
@@ -1234,7 +1250,8 @@ def select(
             best = max(passing, key=key)
             best.equally_good = confusable(best, passing, held_out=bool(setup.folds))
             retained.append(best)
-            with simulations_on(executor, shared, None, jobs):
+            here = None if executor is None or not travels_light(shared) else executor
+            with simulations_on(here, shared, None, jobs):
                 current = current_after(setup, best, fold_eval)
         final_spec = current.spec
         final = current.fit
@@ -1283,7 +1300,7 @@ def _final_fit(
     setup.final_noise = noise_model(setup.trials, fit.simulated)
     state = TrialState(uuid.uuid4().hex, remnant_arms, setup.n_remnant, mech.sensor_delay.active)
     setup.trial_state = state.token  # this process's trials have it (an executor may share them)
-    with simulations_on(executor, shared, state, jobs):
+    with simulations_on(executor if travels_light(shared) else None, shared, state, jobs):
         a0 = start_arms(setup, setup.trials, spec, setup.final_noise, fit.x, fit.arms)
         final = fit_model(setup.trials, spec, setup.final_noise, a0, x0=fit.x)
         return _out_of_corners(setup.trials, spec, setup.final_noise, final, {})

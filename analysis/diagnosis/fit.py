@@ -401,7 +401,8 @@ def arm_jacobian(
 SpectraJob = tuple[TrialData, ArmParams, Mechanisms]
 # Where a fit's simulations run: in this process (None), or through a function that maps
 # jobs to their spectra, in order (the selection's pool, for the fits it runs in the main
-# process while its workers would wait: the final fit, see analysis.diagnosis.engine).
+# process while its workers would wait: the final fit, and the re-fit of a model retained
+# far from the noise floor; see analysis.diagnosis.engine).
 SPECTRA_MAP: ContextVar[Callable[[list[SpectraJob]], list[np.ndarray]] | None] = ContextVar(
     "spectra_map", default=None
 )

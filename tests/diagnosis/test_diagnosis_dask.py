@@ -49,3 +49,16 @@ def test_our_own_pool_of_two_jobs_gives_the_in_process_diagnosis(tmp_path):
     assert here.cause == "actuator_lag", here.summary()
     pooled = run_diagnosis(data, None, candidates=CANDIDATES, jobs=2)
     assert _found(pooled) == _found(here)
+
+
+@pytest.mark.slow
+def test_a_retained_frictions_final_fit_on_two_jobs_is_the_in_process_one(tmp_path):
+    # A nonlinear mechanism retained: its final fit simulates eight remnant realisations per
+    # trial, which the main process makes after the workers got their set-up; each worker
+    # rebuilds them for its share of the simulations (engine.TrialState).
+    data = make_study(tmp_path / "s", "coulomb_friction", 0.15, seed=14)
+    only = ("coulomb_friction",)
+    here = run_diagnosis(data, None, candidates=only)
+    assert here.cause == "coulomb_friction", here.summary()
+    pooled = run_diagnosis(data, None, candidates=only, jobs=2)
+    assert _found(pooled) == _found(here)

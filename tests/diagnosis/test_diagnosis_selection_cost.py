@@ -445,7 +445,8 @@ def test_an_idle_worker_starts_the_forms_a_plan_may_ask_for_next(monkeypatch, tm
     events = (tmp_path / "pooled.log").read_text().split("\n")
     last = len(candidate("stiffness_nonlinearity").forms) - 1  # its first step's best form
     first = events.index(f"end 2 stiffness_nonlinearity {last}")
-    assert "start 2 stiffness_nonlinearity 0" in events[:first]  # started early, and used
+    assert "start 2 stiffness_nonlinearity 0" in events[:first]  # started early …
+    assert events.count("start 2 stiffness_nonlinearity 0") == 1  # … and not fitted again
     asked = sorted(e for e in (tmp_path / "here.log").read_text().split("\n") if e)
     assert set(asked) <= {e for e in events if e}
 
