@@ -19,10 +19,11 @@ subject session < 60 s. ``--quick`` runs a reduced grid (fewer magnitudes and se
 ``--world otherworld`` (or ``both``, the default) runs the same on studies of the independent
 world (issue 18 item 3; :mod:`benchmarks._diagnose_otherworld`): every form of every mechanism
 family at moderate magnitude, and a batch of null studies; goal there ≤ 60 s per study of 2
-subjects × 3 conditions. Time is measured as wall and as CPU seconds of the diagnosis (one job
-per study unless ``--study-jobs``; the CPU seconds include its workers'): on a shared machine
-the CPU seconds are what compare. ``--jobs 1 --study-jobs K`` on a K-core machine measures
-instead what a user waits for ``steerlab diagnose`` (whose default is a worker per core). The
+subjects × 3 conditions, the wall seconds a user of this machine waits for ``steerlab
+diagnose`` (whose default is a worker per core): ``--jobs 1 --study-jobs K`` on a K-core
+machine, otherwise idle, measures that. Time is measured as wall and as CPU seconds of the
+diagnosis (one job per study unless ``--study-jobs``; the CPU seconds include its workers'):
+on a shared machine the CPU seconds are what compare between runs. The
 last line's JSON has ``side_by_side`` (one row per headline figure, one column per world),
 ``worlds`` (each world's full summary) and the load average before and after.
 """
@@ -303,6 +304,8 @@ def side_by_side(worlds: dict[str, dict]) -> dict[str, dict]:
         "false_alarm_rate": lambda w: w.get("false_alarm_rate"),
         "n_null": lambda w: w.get("n_null"),
         "errors": lambda w: w.get("errors"),
+        "median_seconds_per_study": lambda w: w["seconds_per_study"]["seconds"]["median"],
+        "max_seconds_per_study": lambda w: w["seconds_per_study"]["seconds"]["max"],
         "median_cpu_seconds_per_study": lambda w: w["seconds_per_study"]["cpu_seconds"]["median"],
         "max_cpu_seconds_per_study": lambda w: w["seconds_per_study"]["cpu_seconds"]["max"],
     }

@@ -41,6 +41,7 @@ def test_side_by_side_counts_names_false_alarms_and_time():
     assert both["false_alarm_rate"] == {"steerlab": 0.0, "otherworld": 0.5}
     assert both["correct_name_rate_at_moderate"]["steerlab"] == 1.0
     assert both["max_cpu_seconds_per_study"] == {"steerlab": 3.0, "otherworld": 30.0}
+    assert both["max_seconds_per_study"] == {"steerlab": 6.0, "otherworld": 60.0}
 
 
 def test_cases_cover_every_form_or_one_per_family():
