@@ -57,6 +57,7 @@ import uuid
 from collections.abc import Callable, Generator, Iterator, Sequence
 from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field, fields, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -581,7 +582,7 @@ def make_current(
 ) -> Current:
     """The model ``spec`` fitted as ``fit``, with its folds (``folds``: :func:`_fold_eval`
     without its ``setup``, where it runs elsewhere)."""
-    xs, costs, _ = _fold_eval(setup, spec, fit.arms) if folds is None else folds(spec, fit.arms)
+    xs, costs, _ = (folds or partial(_fold_eval, setup))(spec, fit.arms)
     return Current(spec, fit, xs, costs)
 
 
@@ -799,28 +800,20 @@ def needs_held_out(setup: Setup, r: CandidateResult) -> bool:
     return bool(setup.folds) and r.delta_bic < -MIN_DBIC
 
 
-def held_out_folds(
-    setup: Setup, current: Current, r: CandidateResult
-) -> tuple[list[np.ndarray], list[float], dict[str, float]]:
-    """:func:`_fold_eval` of the candidate ``r`` fitted at this step."""
-    return joined_folds([held_out_fold(setup, current, r, i) for i in range(len(setup.folds))])
-
-
 def held_out_fold(setup: Setup, current: Current, r: CandidateResult, i: int) -> FoldResult:
-    """Fold ``i`` of :func:`held_out_folds` (as a worker runs it)."""
+    """Fold ``i`` of :func:`_fold_eval` for the candidate ``r`` fitted at this step."""
     new = r.fit.spec.start()[current.spec.n_free :]
     start = np.concatenate([current.fold_x[i], new])
     return _one_fold(setup, r.fit.spec, current.fit.arms, i, start, None)
 
 
 def add_held_out(
-    setup: Setup,
     current: Current,
     r: CandidateResult,
-    folds: tuple[list[np.ndarray], list[float], dict[str, float]] | None = None,
+    folds: tuple[list[np.ndarray], list[float], dict[str, float]],
 ) -> None:
-    """Fill in ``r``'s held-out gain from its folds (``folds``: computed elsewhere)."""
-    xs, costs, per_trial = held_out_folds(setup, current, r) if folds is None else folds
+    """Fill in ``r``'s held-out gain from its folds (:func:`held_out_fold`, joined)."""
+    xs, costs, per_trial = folds
     r.held_out_folds = [c0 - c1 for c0, c1 in zip(current.fold_test_cost, costs, strict=True)]
     r.held_out_gain = float(sum(r.held_out_folds))
     r.fold_x, r.fold_cost, r.held_out_trial_cost = xs, costs, per_trial
@@ -1250,8 +1243,7 @@ def select(
             best = max(passing, key=key)
             best.equally_good = confusable(best, passing, held_out=bool(setup.folds))
             retained.append(best)
-            here = None if executor is None or not travels_light(shared) else executor
-            with simulations_on(here, shared, None, jobs):
+            with simulations_on(executor, shared, None, jobs):
                 current = current_after(setup, best, fold_eval)
         final_spec = current.spec
         final = current.fit
@@ -1289,18 +1281,16 @@ def _final_fit(
     Its simulations run on the selection's pool where there is one: this fit was a sixth to
     a fifth of a friction study's wall time, in one process while the workers waited."""
     mech = spec.mechanisms(fit.x)
-    remnant_arms = None
-    if needs_remnant(mech) and K_REMNANT_FINAL > setup.n_remnant:
-        remnant_arms = fit.arms
-        set_remnants(setup.trials, fit.arms, K_REMNANT_FINAL)
-        setup.n_remnant = K_REMNANT_FINAL
-    if mech.sensor_delay.active:
-        for t in setup.trials + setup.fam:
-            t.undo_reading_delay = True
+    more = needs_remnant(mech) and K_REMNANT_FINAL > setup.n_remnant
+    state = TrialState(
+        uuid.uuid4().hex,
+        fit.arms if more else None,
+        K_REMNANT_FINAL if more else setup.n_remnant,
+        mech.sensor_delay.active,
+    )
+    state.apply(setup)  # here; each worker applies it to its own copy
     setup.final_noise = noise_model(setup.trials, fit.simulated)
-    state = TrialState(uuid.uuid4().hex, remnant_arms, setup.n_remnant, mech.sensor_delay.active)
-    setup.trial_state = state.token  # this process's trials have it (an executor may share them)
-    with simulations_on(executor if travels_light(shared) else None, shared, state, jobs):
+    with simulations_on(executor, shared, state, jobs):
         a0 = start_arms(setup, setup.trials, spec, setup.final_noise, fit.x, fit.arms)
         final = fit_model(setup.trials, spec, setup.final_noise, a0, x0=fit.x)
         return _out_of_corners(setup.trials, spec, setup.final_noise, final, {})
@@ -1311,8 +1301,10 @@ def simulations_on(
     executor: cf.Executor | None, shared: object, state: TrialState | None, jobs: int
 ) -> Iterator[None]:
     """The fits of the main process within run their simulations on ``executor`` (none:
-    here); ``state``: what the workers' trials need applied (None: nothing)."""
-    if executor is None:
+    here; here too where a task's handle carries the set-up, an executor we were given that
+    is not Dask's: :func:`~analysis.executors.travels_light`); ``state``: what the workers'
+    trials need applied (None: nothing)."""
+    if executor is None or not travels_light(shared):
         yield
         return
     state = state or TrialState("", None, 0, False)
@@ -1405,12 +1397,8 @@ def current_after(setup: Setup, best: CandidateResult, folds: FoldEval | None = 
     fit = _full_fit(setup, best.fit, relative_stop=False)
     fold_x, fold_cost = best.fold_x, best.fold_cost
     if fold_x:
-        args = (spec, fit.arms, fold_x)
-        fold_x, fold_cost, _ = (
-            _fold_eval(setup, *args, relative_stop=False)
-            if folds is None
-            else folds(*args, relative_stop=False)
-        )
+        folds = folds or partial(_fold_eval, setup)
+        fold_x, fold_cost, _ = folds(spec, fit.arms, fold_x, relative_stop=False)
     return Current(spec, fit, fold_x, fold_cost)
 
 
@@ -1507,7 +1495,7 @@ def _held_out_stage(
         for r in batch:
             if len(parts[id(r)]) == n and not r.held_out_undone:
                 folds = joined_folds([parts[id(r)][i] for i in range(n)])
-                add_held_out(setup, current, r, folds)
+                add_held_out(current, r, folds)
         return ok
 
     if not todo:
