@@ -267,6 +267,11 @@ class World:
     integrator: str = "auto"
     control_per_sample: int = 1  # the rig renders this many times per recorded sample
     record_filter: str = "none"  # "none" | "mean": the recorder's filter on angle and torque
+    # Recording conventions a lab's rig may have (CONVENTIONS):
+    wheel_rendering: str = "sampled"  # "continuous": a physical spring and damper
+    sample_timing: str = "start"  # "end": angle and torque read at the end of the interval
+    torque_skew_s: float = 0.0  # the torque channel samples this much earlier than the angle
+    torque_lowpass_hz: float = 0.0  # first-order low-pass of the torque sensor (0: none)
 
     @property
     def control_hz(self) -> float:
@@ -286,6 +291,19 @@ class World:
         if self.record_filter not in ("none", "mean"):
             raise OtherworldError(
                 f"world record_filter: 'none' or 'mean', got {self.record_filter!r}"
+            )
+        if self.wheel_rendering not in ("sampled", "continuous"):
+            raise OtherworldError(
+                f"world wheel_rendering: 'sampled' or 'continuous', got {self.wheel_rendering!r}"
+            )
+        if self.sample_timing not in ("start", "end"):
+            raise OtherworldError(
+                f"world sample_timing: 'start' or 'end', got {self.sample_timing!r}"
+            )
+        if not (0.0 <= self.torque_skew_s < 0.05 and 0.0 <= self.torque_lowpass_hz < 1e4):
+            raise OtherworldError(
+                "world torque_skew_s (0–0.05 s) and torque_lowpass_hz (≥ 0) out of range: "
+                f"{self.torque_skew_s!r}, {self.torque_lowpass_hz!r}"
             )
         if self.velocity_source not in ("state", "difference"):
             raise OtherworldError(
@@ -321,6 +339,20 @@ class World:
 
     def is_linear(self) -> bool:
         return all(m["kind"] in LINEAR_KINDS for m in self.mechanisms)
+
+    @property
+    def physical_wheel(self) -> tuple[float, float]:
+        """The wheel's physical damping and spring (b, k); zero where the rig renders them."""
+        if self.wheel_rendering == "continuous":
+            return self.render_b, self.render_k
+        return 0.0, 0.0
+
+    @property
+    def rendered(self) -> tuple[float, float]:
+        """The damping and spring the rig's loop renders (b, k)."""
+        if self.wheel_rendering == "continuous":
+            return 0.0, 0.0
+        return self.render_b, self.render_k
 
 
 def grip_of_stiffness(k_i: float) -> float:
@@ -358,7 +390,8 @@ def _linear_matrices(world: World, lay: _Layout, g: float, wc: float):
     A[0, 1] = 1.0
     A[2, 3] = 1.0
     # wheel: Iw ω' = u − k_c(θ − θh) − b_c(ω − ωh)
-    A[1, :4] = np.array([-a["k_c"], -a["b_c"], a["k_c"], a["b_c"]]) / Iw
+    b_w, k_w = world.physical_wheel
+    A[1, :4] = np.array([-a["k_c"] - k_w, -a["b_c"] - b_w, a["k_c"], a["b_c"]]) / Iw
     B[1, 0] = 1.0 / Iw
     # arm: I ωh' = k_c(θ − θh) + b_c(ω − ωh) − b_i ωh − k_i θh + n
     A[3, :4] = np.array([a["k_c"], a["b_c"], -a["k_c"] - a["k_i"], -a["b_c"] - a["b_i"]]) / a["I_i"]
@@ -487,7 +520,9 @@ def simulate_trial(
     fs = world.control_hz  # everything below runs at the control rate; recorded at the end
     h = 1.0 / fs
     n_rec = int(round((run_in_s + n_periods * design.period_s) * world.fs_hz))
-    n = n_rec * mc
+    # A recorder that reads at the end of the interval needs the instant after the last one.
+    late = 1 if world.sample_timing == "end" else 0
+    n = n_rec * mc + late
     rng = np.random.default_rng(seed)
     t = np.arange(n) * h
     tp = design.value(t + phase_offset_s)
@@ -542,6 +577,9 @@ def simulate_trial(
         delay_steps = int(math.floor(q + 1e-9))
         delay_frac = (q - delay_steps) * h  # switch time inside the interval
 
+    rb, rk = world.rendered
+    b_w, k_w = world.physical_wheel
+
     def read(k, x):
         th = x[0] + a_noise[k]
         if world.angle_lsb_rad > 0:
@@ -551,7 +589,7 @@ def simulate_trial(
             omega_read[k] = x[1]
         else:
             omega_read[k] = (th - theta_read[k - 1]) * fs if k > 0 else 0.0
-        u[k] = tp[k] - world.render_b * omega_read[k] - world.render_k * th
+        u[k] = tp[k] - rb * omega_read[k] - rk * th
 
     def held(j):
         return u[j] if j >= 0 else 0.0
@@ -591,7 +629,7 @@ def simulate_trial(
                 ta = x[lagi[0]]
             else:
                 ta = uk
-            d[1] = (ta - td - _friction(fric, om)) / Iw
+            d[1] = (ta - td - _friction(fric, om) - b_w * om - k_w * th) / Iw
             rem = x[lay.rem[0]]
             refl_t = x[lay.reflex] if lay.reflex is not None else 0.0
             d[3] = (td + rem - a["b_i"] * omh - _spring(stiff, thh, kk) - refl_t) / I_i
@@ -653,23 +691,28 @@ def simulate_trial(
     X = hist.x
     td_true = a["k_c"] * (X[:, 0] - X[:, 2]) + a["b_c"] * (X[:, 1] - X[:, 3])
     sd = world.mech("sensor_delay")
-    if sd:
-        ts = t - sd["delay_s"]
+    skew = (sd["delay_s"] if sd else 0.0) + world.torque_skew_s
+    if skew > 0.0:
+        ts = t - skew
         th_d = np.array([hist.at(tt, [0, 1, 2, 3]) for tt in ts])
         td_sensed = a["k_c"] * (th_d[:, 0] - th_d[:, 2]) + a["b_c"] * (th_d[:, 1] - th_d[:, 3])
     else:
         td_sensed = td_true
+    if world.torque_lowpass_hz > 0.0:
+        pole = math.exp(-2 * math.pi * world.torque_lowpass_hz * h)
+        td_sensed = lfilter([1.0 - pole], [1.0, -pole], td_sensed, zi=[pole * td_sensed[0]])[0]
 
     # The recorder: one sample per `mc` control cycles, at a control instant. "mean" averages the
     # angle reads and the torque over the mc cycles ending there; T_p is the command's value.
     rec_idx = np.arange(n_rec) * mc
+    read_idx = rec_idx + late  # "end": the sensors' values one control cycle later
 
     def record(x):
         if world.record_filter == "none" or mc == 1:
-            return x[rec_idx]
+            return x[read_idx]
         c = np.concatenate(([0.0], np.cumsum(x)))
-        lo = np.maximum(rec_idx - mc + 1, 0)
-        return (c[rec_idx + 1] - c[lo]) / (rec_idx + 1 - lo)
+        lo = np.maximum(read_idx - mc + 1, 0)
+        return (c[read_idx + 1] - c[lo]) / (read_idx + 1 - lo)
 
     td_meas = record(td_sensed) + world.torque_noise_Nm * rng.standard_normal(n_rec)
     if world.torque_lsb_Nm > 0:
@@ -724,6 +767,11 @@ class StudyOptions:
     integrator: str = "auto"
     control_per_sample: int = 1
     record_filter: str = "none"
+    wheel_rendering: str = "sampled"
+    sample_timing: str = "start"
+    torque_skew_s: float = 0.0
+    torque_lowpass_hz: float = 0.0
+    state_convention: bool = False  # write sample_timing and wheel_rendering into each JSON
     perturbation_seed: int | None = None  # default: from the study seed
     period_s: float = 45.0  # the perturbation's period (shorter only for fast tests)
 
@@ -747,6 +795,17 @@ WORLDS: dict[str, dict[str, Any]] = {
     "rig_1k_recorder_250_mean": {"control_per_sample": 4, "record_filter": "mean"},
     "velocity_difference": {"velocity_source": "difference"},
     "heavy_rig": {"wheel_inertia": 0.36},
+}
+# Recording conventions of other labs' rigs (issue 36), as StudyOptions: none of them is a
+# mechanism, so a study with nothing hidden must be diagnosed `none` under each.
+CONVENTIONS: dict[str, dict[str, Any]] = {
+    "steerlab": {},
+    "end_of_interval": {"sample_timing": "end"},
+    "physical_wheel": {"wheel_rendering": "continuous"},
+    "physical_wheel_end": {"wheel_rendering": "continuous", "sample_timing": "end"},
+    "1k_averaged_250": {"control_per_sample": 4, "record_filter": "mean"},
+    "torque_skew_half": {"torque_skew_s": 0.002},
+    "torque_lowpass_100hz": {"torque_lowpass_hz": 100.0},
 }
 # One moderate hidden mechanism per family (issue 18's table), for diagnosis studies.
 HIDDEN = {
@@ -887,6 +946,10 @@ def generate_study(
                     integrator=opts.integrator,
                     control_per_sample=opts.control_per_sample,
                     record_filter=opts.record_filter,
+                    wheel_rendering=opts.wheel_rendering,
+                    sample_timing=opts.sample_timing,
+                    torque_skew_s=opts.torque_skew_s,
+                    torque_lowpass_hz=opts.torque_lowpass_hz,
                 )
                 lo, hi = opts.run_in_s
                 run_in = float(rng.uniform(lo, hi))
@@ -914,6 +977,9 @@ def generate_study(
                     "boundary_deg": "inf" if math.isinf(bd) else bd,
                     "lab": "otherworld",
                 }
+                if opts.state_convention:
+                    meta["sample_timing"] = opts.sample_timing
+                    meta["wheel_rendering"] = opts.wheel_rendering
                 write_trial(out, name, rec, meta)
                 n_trials += 1
                 truth["trials"][name] = {

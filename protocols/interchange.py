@@ -22,6 +22,7 @@ import shutil
 import tempfile
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -269,6 +270,38 @@ def _whole(meta: dict, key: str, path: Path, *, low: int | None = None, null: bo
     return v
 
 
+# How a recording says it was made (issue 36): when the angle and the torque were read relative
+# to the command ("start": Steerlab's loop reads, then commands; "end": at the end of the
+# interval over which the command was held; or a number of samples), and whether the wheel's
+# damping and spring were rendered by the loop from sampled values or acted continuously.
+SAMPLE_TIMINGS = {"start": 0.0, "end": 1.0}
+MAX_STATED_OFFSET = 10.0
+RENDERINGS = ("sampled", "continuous")
+
+
+def stated_timing(value: Any, where: str, key: str = "sample_timing") -> float:
+    """A ``sample_timing`` or ``torque_timing`` (``key``) as an offset in samples after the
+    command; ``ValueError`` naming ``where`` and ``key`` for anything else."""
+    if isinstance(value, str) and value in SAMPLE_TIMINGS:
+        return SAMPLE_TIMINGS[value]
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or not -MAX_STATED_OFFSET <= value <= MAX_STATED_OFFSET:
+        raise ValueError(
+            f'{where}: field {key!r} must be "start", "end" or a number of samples '
+            f"between -{MAX_STATED_OFFSET:g} and {MAX_STATED_OFFSET:g}, got {value!r}"
+        )
+    return float(value)
+
+
+def check_rendering(value: Any, where: str) -> str:
+    """A ``wheel_rendering``; ``ValueError`` naming ``where`` for anything else."""
+    if value not in RENDERINGS:
+        raise ValueError(
+            f"{where}: field 'wheel_rendering' must be one of {list(RENDERINGS)}, got {value!r}"
+        )
+    return str(value)
+
+
 def _read_meta(path: Path) -> dict:
     try:
         meta = json.loads(path.read_text(encoding="utf-8"), parse_constant=_no_constant(path))
@@ -311,7 +344,16 @@ def _read_meta(path: Path) -> dict:
         raise InterchangeError(
             f"{path}: field 'familiarization' must be true or false, got {fam!r}"
         )
-    _whole(meta, "trial_index", path, low=1)
+    # Other labs number their trials from 0: any whole number ≥ 0, distinct within a subject.
+    _whole(meta, "trial_index", path, low=0)
+    try:
+        for key in ("sample_timing", "torque_timing"):
+            if key in meta:
+                stated_timing(meta[key], str(path), key)
+        if "wheel_rendering" in meta:
+            check_rendering(meta["wheel_rendering"], str(path))
+    except ValueError as e:
+        raise InterchangeError(str(e)) from None
     _whole(meta, "attempt", path, low=1)
     _whole(meta, "latin_square_row", path, low=0)
     start = _whole(meta, "measured_start", path, low=0)

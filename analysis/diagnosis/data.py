@@ -112,6 +112,9 @@ class TrialData:
     # The wheel the simulated world has (inertia, rendered b and k): nominal, or a rig check's
     # (analysis.diagnosis.wheel); its wheel-side mechanisms are in the baseline's mechanisms.
     wheel: VirtualWheel = field(default_factory=VirtualWheel)
+    # How its damping and spring act (hardware.sim.world.WorldConfig.wheel_rendering): as
+    # Steerlab's rig renders them, or physically; from the data (analysis.rig_from_data).
+    wheel_rendering: str = "sampled"
     # The torque and slew limits the simulated loop applies to its command: Steerlab's rig's,
     # unless the baseline finds the recording's rig had none (engine.choose_rig_limits).
     safety: SafetyLimits = field(default_factory=SafetyLimits)
@@ -433,13 +436,17 @@ def prepare_study(
     wheel: DiagnosisWheel | None = None,
     inertia_kgm2: float | None = None,
     rig_limits: Mapping[str, SafetyLimits] | None = None,
+    wheel_rendering: str = "sampled",
+    rig_wheel: DiagnosisWheel | None = None,
 ) -> PreparedStudy:
     """Select and prepare the trials; raise :class:`DiagnosisError` when nothing is usable.
     ``wheel``: the wheel the data are checked against and simulated with (nominal by default;
     see :mod:`analysis.diagnosis.wheel`). ``inertia_kgm2``: hold every subject's arm inertia at
     this value instead of fitting it from the data (see :func:`_cell_fits`). ``rig_limits``:
     session file → its rig's command limits (:func:`recorded_rig_limits`); trials of other
-    files are simulated with Steerlab's defaults."""
+    files are simulated with Steerlab's defaults. ``wheel_rendering``: how the simulated wheel's
+    damping and spring act (``analysis.rig_from_data``); ``rig_wheel``: the wheel the data are
+    checked against, where ``wheel`` took its inertia from the data."""
     rendered = wheel.rendered if wheel is not None else None
     if not records:
         raise DiagnosisError("no trials in the data")
@@ -476,6 +483,7 @@ def prepare_study(
     for r in chosen.values():
         try:
             t = prepare_trial(r, rendered)
+            t.wheel_rendering = wheel_rendering
             if rig_limits:
                 t.safety = rig_limits.get(str(Path(r.source_file).resolve()), t.safety)
         except ValueError as e:
@@ -515,7 +523,9 @@ def prepare_study(
     if inertia_kgm2 is not None:
         notes.append(f"arm inertia held at {inertia_kgm2:g} kg·m² (not fitted from the data)")
     fam.sort(key=lambda t: (t.subject, t.trial_index or 0))
-    check = _check_rig(trials, wheel)
+    # The data are checked against the rig's wheel as it was chosen, before the data's
+    # inertia joined it: a wheel of another rig is refused, not fitted.
+    check = _check_rig(trials, rig_wheel or wheel)
     prep = PreparedStudy(trials, fam, skipped, notes, limits, check)
     if not prep.has_held_out:
         limits.append(

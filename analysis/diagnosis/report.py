@@ -458,6 +458,55 @@ def _wheel_paragraph(result) -> str:
     return f"<p><b>Wheel</b>: {_e(result.wheel_sentence)}.{_e(extra)}</p>"
 
 
+_PARAM_LABELS = {
+    "inertia_kgm2": ("I", "kg·m²"),
+    "damping_Nms_per_rad": ("b", "N·m·s/rad"),
+    "stiffness_Nm_per_rad": ("k", "N·m/rad"),
+    "theta_offset_samples": ("angle read after the command", "samples"),
+    "torque_offset_samples": ("torque read after the command", "samples"),
+}
+
+
+def _rig_from_data_section(result) -> str:
+    """The wheel and the recording's timing identified from the data, beside the rig's, and
+    what the simulation took from them (analysis.rig_from_data)."""
+    d = result.rig_from_data
+    if not d:
+        return ""
+    rows = []
+    for key, f in d["fits"].items():
+        rendering, which = key.split("/")
+        cells = []
+        for p in _PARAM_LABELS:
+            v, e = f["values"][p], f["sem"].get(p)
+            cells.append(f"{_n(v, 4)} ± {_n(e, 1)}" if e else f"{_n(v, 4)} (rig's)")
+        rows.append(
+            [_e(f"{rendering}, {'I free' if which == 'nominal' else 'I, b, k free'}")]
+            + cells
+            + [_n(f["m2ll"], 5), _n(f["noise_ratio"], 3)]
+        )
+    header = ["damping and spring"] + [f"{a} ({u})" for a, u in _PARAM_LABELS.values()]
+    header += ["−2 log L", "residual / noise"]
+    conv = d["convention"]
+    told = (
+        ""
+        if d.get("rendering_told_apart")
+        else (
+            " The data cannot tell the two renderings apart (to first order in the sample interval "
+            "they are the same wheel with I and b shifted); the rig's is kept."
+        )
+    )
+    notes = "".join(f"<li>{_e(n)}</li>" for n in conv.get("notes", []))
+    return (
+        "<h3>The rig and the timing, from the data</h3>"
+        f"<p>{_e(result.rig_from_data_sentence)}.{_e(told)} Where each item of the simulation "
+        f"came from: {_e(', '.join(f'{k}: {v}' for k, v in conv['source'].items()))}.</p>"
+        + (f"<ul>{notes}</ul>" if notes else "")
+        + _table(header, rows)
+        + f"<p class='small'>{_e(d['method'])}</p>"
+    )
+
+
 def write_html(path: Path, result, prep, setup, sel, drift) -> None:
     comp = result.comparison
     from steerlab.analysis.diagnosis import compare as C
@@ -509,6 +558,7 @@ def write_html(path: Path, result, prep, setup, sel, drift) -> None:
 check), sampled at {_e(", ".join(f"{x:g}" for x in d["sample_rates_Hz"]))} Hz.
 {("Baseline: model file " + _e(result.baseline_model) + ".") if result.baseline_model else ""}</p>
 {_wheel_paragraph(result)}
+{_rig_from_data_section(result)}
 {_verdict(result)}
 {('<div class="warn"><b>Limits of these data</b><ul>' + limits + "</ul></div>") if limits else ""}
 

@@ -44,6 +44,13 @@ from steerlab.analysis.diagnosis.fit import (
 )
 from steerlab.analysis.diagnosis.simulate import remnant_spectrum_fit, simulated_spectra
 from steerlab.analysis.diagnosis.wheel import choose_wheel
+from steerlab.analysis.rig_from_data import (
+    RigFromData,
+    RigFromDataError,
+    identify,
+    retime,
+    stated_convention,
+)
 from steerlab.analysis.strict_json import json_clean
 from steerlab.hardware.sim.mechanisms import Mechanisms
 from steerlab.hardware.sim.model_file import (
@@ -86,6 +93,10 @@ class DiagnosisResult:
     # plus "check": the wheel fitted from the data and how well each wheel fits them.
     wheel: dict = field(default_factory=dict)
     wheel_sentence: str = ""
+    # The wheel and the recording's timing identified from the data, and the convention the
+    # simulated rig took from them (analysis.rig_from_data.RigFromData.to_dict()).
+    rig_from_data: dict = field(default_factory=dict)
+    rig_from_data_sentence: str = ""
     # Retained mechanism → the candidates that explain the data as well (engine.confusable).
     equally_good: dict[str, list[dict]] = field(default_factory=dict)
 
@@ -99,6 +110,7 @@ class DiagnosisResult:
                 "equally_good": self.equally_good,
                 "baseline_model": self.baseline_model,
                 "wheel": self.wheel,
+                "rig_from_data": self.rig_from_data,
                 "candidates": self.candidates,
                 "gain": self.gain,
                 "unexplained": self.unexplained,
@@ -113,6 +125,8 @@ class DiagnosisResult:
 
     def summary(self) -> str:
         lines = [f"wheel: {self.wheel_sentence}"] if self.wheel_sentence else []
+        if self.rig_from_data_sentence:
+            lines.append(f"rig and timing: {self.rig_from_data_sentence}")
         alt = self.equally_good.get(self.cause, [])
         if alt:
             names = " or ".join([self.cause] + [a["name"] for a in alt])
@@ -212,6 +226,36 @@ class _Stages:
         self(label)
 
 
+def rig_from_data(records, wheel, choice) -> RigFromData | None:
+    """The wheel and timing of the recording, from its data (analysis.rig_from_data): its
+    inertia joins the simulated wheel only where the wheel is the nominal one by default
+    (an option or a rig check's record names a wheel the user chose); its timing and rendering
+    always, unless the recording states them. None where no trial can be used (the
+    diagnosis then says why, trial by trial)."""
+    try:
+        stated = stated_convention(records)
+    except ValueError as e:
+        raise DiagnosisError(str(e)) from None
+    try:
+        found = identify(
+            records,
+            wheel.rendered,
+            rig_label="the rig check" if wheel.measured else "the nominal wheel",
+            stated=stated,
+        )
+    except RigFromDataError:
+        return None
+    if wheel.measured or choice.chosen_by == "--nominal-wheel":
+        c = found.convention
+        found = replace(
+            found,
+            convention=replace(
+                c, inertia_kgm2=wheel.rendered.inertia_kgm2, source={**c.source, "inertia": "rig"}
+            ),
+        )
+    return found
+
+
 def run_diagnosis(
     directory: str | Path,
     out: str | Path | None,
@@ -261,9 +305,24 @@ def _run(
     records = load_study(directory)
     # The actuator lag becomes the simulated loop's lag at the data's rate (τ = delay − h/2).
     wheel = choice.wheel(float(np.median([r.fs_hz for r in records])) if records else 1000.0)
+    rig_wheel = wheel
+    rig_data = rig_from_data(records, wheel, choice)
+    conv = rig_data.convention if rig_data is not None else None
+    if conv is not None:
+        records = [
+            retime(r, conv.theta_offset_samples, conv.torque_offset_samples) for r in records
+        ]
+        if conv.inertia_kgm2 != wheel.rendered.inertia_kgm2:
+            wheel = replace(wheel, rendered=replace(wheel.rendered, inertia_kgm2=conv.inertia_kgm2))
     rig_limits, limit_notes = recorded_rig_limits(directory)
-    prep = prepare_study(records, wheel, inertia_kgm2, rig_limits)
+    prep = prepare_study(
+        records, wheel, inertia_kgm2, rig_limits,
+        wheel_rendering=conv.rendering if conv is not None else "sampled",
+        rig_wheel=rig_wheel,
+    )  # fmt: skip
     prep.notes.extend(limit_notes)
+    if conv is not None:
+        prep.notes.extend(conv.notes)
     base_mech = Mechanisms()
     model_baseline = None
     base_drift = 0.0
@@ -307,8 +366,12 @@ def _run(
     stages.next("compare")
     t1 = time.perf_counter()
     result = _assemble(prep, setup, sel, drift, fam_arms, base_mech, model)
-    result.wheel = {**wheel.to_dict(), "check": prep.wheel_check}
-    result.wheel_sentence = wheel.sentence()
+    # The rig's wheel; what the simulation took from the data beside it is in rig_from_data.
+    result.wheel = {**rig_wheel.to_dict(), "check": prep.wheel_check}
+    result.wheel_sentence = rig_wheel.sentence()
+    if rig_data is not None:
+        result.rig_from_data = rig_data.to_dict()
+        result.rig_from_data_sentence = rig_data.sentence()
     timing["compare"] = time.perf_counter() - t1
 
     if out is not None:

@@ -86,6 +86,7 @@ def trial_world(trial: TrialData, mechanisms: Mechanisms) -> World:
         wheel_inertia_kgm2=trial.wheel.inertia_kgm2,
         sensors=NOISELESS,
         mechanisms=mechanisms,
+        wheel_rendering=trial.wheel_rendering,
     )
     return World(cfg, wheel=trial.wheel, safety=trial.safety)
 

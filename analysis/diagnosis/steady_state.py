@@ -189,20 +189,27 @@ class Loop:
 
 
 @lru_cache(maxsize=512)
-def _discretised(I_w: float, arm: ArmParams, dt: float) -> tuple[np.ndarray, np.ndarray]:
+def _discretised(
+    I_w: float, arm: ArmParams, dt: float, b_w: float = 0.0, k_w: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     # A fit evaluates each arm with several mechanism parameters (its Jacobian's columns).
-    Ad, Bd = W.discretise(I_w, arm, dt)
+    Ad, Bd = W.discretise(I_w, arm, dt, b_w, k_w)
     Ad.flags.writeable = Bd.flags.writeable = False
     return Ad, Bd
 
 
 def loop(trial, arm: ArmParams, mech: Mechanisms) -> Loop:
     fs = trial.fs_hz
-    Ad, Bd = _discretised(float(trial.wheel.inertia_kgm2), arm, 1.0 / fs)
+    w = trial.wheel
+    # A physical wheel's spring and damper are in the continuous dynamics; the loop renders none.
+    physical = getattr(trial, "wheel_rendering", "sampled") == "continuous"
+    b_w, k_w = (w.damping_nms_per_rad, w.stiffness_nm_per_rad) if physical else (0.0, 0.0)
+    Ad, Bd = _discretised(float(w.inertia_kgm2), arm, 1.0 / fs, float(b_w), float(k_w))
     p = np.zeros(W.N_PARAMS)
     p[W.P_DT] = 1.0 / fs
     mech.configure(p, ConditionBehaviour(arm, 0.0, 0.0, 0.0), fs)
-    q = _scalars(p, trial.wheel.stiffness_nm_per_rad, trial.wheel.damping_nms_per_rad, arm)
+    k_sw, b_sw = (0.0, 0.0) if physical else (w.stiffness_nm_per_rad, w.damping_nms_per_rad)
+    q = _scalars(p, k_sw, b_sw, arm)
     return Loop(Ad, Bd, q, mech.reflex_delay_samples(fs), mech.command_ring_samples(fs))
 
 

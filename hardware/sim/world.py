@@ -95,6 +95,11 @@ class WorldConfig:
     sensors: SensorSpec = field(default_factory=SensorSpec)
     mechanisms: Mechanisms = field(default_factory=Mechanisms)
     grip_corner_hz: float = 0.15  # bandwidth of the slow grip-force fluctuation
+    # How the wheel's damping and spring act: "sampled" (Steerlab's rig: the loop renders them
+    # from the angle and velocity it reads, through the held motor command) or "continuous"
+    # (a physical spring and damper, or a drive rendering them in its own fast loop: part of
+    # the continuous dynamics, and the loop commands the perturbation alone).
+    wheel_rendering: str = "sampled"
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -118,13 +123,16 @@ TRUTH_CHANNELS = (
 )
 
 
-def discretise(I_w: float, arm, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Exact ZOH discretisation of the wheel–contact–arm system; inputs [T_m, T_hand, T_wheel]."""
+def discretise(
+    I_w: float, arm, dt: float, b_w: float = 0.0, k_w: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact ZOH discretisation of the wheel–contact–arm system; inputs [T_m, T_hand, T_wheel].
+    ``b_w``, ``k_w``: the wheel's physical damping and spring (0: rendered by the loop)."""
     kc, bc, Ii, bi, ki = arm.k_c, arm.b_c, arm.I_i, arm.b_i, arm.k_i
     A = np.array(
         [
             [0.0, 1.0, 0.0, 0.0],
-            [-kc / I_w, -bc / I_w, kc / I_w, bc / I_w],
+            [-(kc + k_w) / I_w, -(bc + b_w) / I_w, kc / I_w, bc / I_w],
             [0.0, 0.0, 0.0, 1.0],
             [kc / Ii, bc / Ii, -(kc + ki) / Ii, -(bc + bi) / Ii],
         ]
@@ -476,6 +484,18 @@ class World:
         self._trial = False
 
     # -- trial set-up -------------------------------------------------------------------
+    @property
+    def physical_wheel(self) -> bool:
+        """Whether the wheel's damping and spring act continuously (WorldConfig.wheel_rendering)."""
+        return self.cfg.wheel_rendering == "continuous"
+
+    @property
+    def _physical(self) -> tuple[float, float]:
+        """The wheel's physical (b, k) for :func:`discretise`: zero where the loop renders them."""
+        if not self.physical_wheel:
+            return 0.0, 0.0
+        return self.wheel.damping_nms_per_rad, self.wheel.stiffness_nm_per_rad
+
     def begin_trial(
         self,
         behaviour: ConditionBehaviour,
@@ -487,10 +507,11 @@ class World:
         cfg, s, m = self.cfg, self.cfg.sensors, self.cfg.mechanisms
         self.behaviour = behaviour
         dt = 1.0 / cfg.fs_hz
-        self.Ad, self.Bd = discretise(cfg.wheel_inertia_kgm2, behaviour.arm, dt)
+        self.Ad, self.Bd = discretise(cfg.wheel_inertia_kgm2, behaviour.arm, dt, *self._physical)
         p = np.zeros(N_PARAMS)
-        p[P_KSW] = self.wheel.stiffness_nm_per_rad
-        p[P_BSW] = self.wheel.damping_nms_per_rad
+        if not self.physical_wheel:
+            p[P_KSW] = self.wheel.stiffness_nm_per_rad
+            p[P_BSW] = self.wheel.damping_nms_per_rad
         p[P_QANG] = 2 * np.pi / s.encoder_counts_per_rev if s.encoder_counts_per_rev else 0.0
         p[P_TRES] = s.torque_resolution
         p[P_KC], p[P_BC] = behaviour.arm.k_c, behaviour.arm.b_c
@@ -537,7 +558,9 @@ class World:
         truth[:, 4] = blk["grip_mean_true_N"]
         self._truth = truth
         base = replace(self.behaviour.arm, **dict(zip(ARM_COLUMNS, arm[-1].tolist(), strict=True)))
-        self.Ad, self.Bd = discretise(self.cfg.wheel_inertia_kgm2, base, self.p[P_DT])
+        self.Ad, self.Bd = discretise(
+            self.cfg.wheel_inertia_kgm2, base, self.p[P_DT], *self._physical
+        )
         self.p[P_KC], self.p[P_BC] = base.k_c, base.b_c
         self.p[P_KI] = base.k_i
         self.p[P_DPAR_HALF] = 0.5 * self.p[P_DT]

@@ -1,0 +1,523 @@
+"""The wheel the driver felt and the recording's timing, identified from hands-on data.
+
+Whatever the arm does, the wheel obeys its own equation, and all three of its signals are
+measured. At the excited frequencies, with s = j2πf, h the sample interval and
+G(s) = (1 − e^{−sh})/(sh) the zero-order hold of a command held over one sample:
+
+    G·Tp − Td·e^{−s τ_d h} = [I s² + R(s)·(b s + k)] · Θ·e^{−s τ_θ h}
+
+- Tp is the perturbation command, held over the interval that follows its sample;
+- τ_θ and τ_d (in samples) are when the angle and the driver torque were read, relative to
+  that command: 0 is Steerlab's loop (read, then command), 1 a system that reads its outputs
+  at the end of the interval over which it held the command; a fraction of a sample, a skew
+  between the two channels (a torque sensor filtered or averaged differently) lies between;
+- R(s) says how the wheel's damping and spring act: rendered by the motor from the angle and
+  velocity of the sample and held (R = G, Steerlab's rig), or physical, acting continuously
+  (R = 1, a wheel with a real spring and damper, or a drive that renders them inside its own
+  fast loop, as a SensoDrive does).
+
+The remnant moves θ and Td together along the wheel's equation, so it cancels there: what is
+left is sensor noise, measured per band at the unexcited bins of the same residual. The fit is
+weighted least squares on the excited bins of every trial at once (shared parameters), the
+noise re-estimated three times; SEMs from the Jacobian, scaled by the residual's own ratio to
+its noise.
+
+What is identified (``RigFromData``), for both renderings: the inertia with damping and
+stiffness held at the rig's (``nominal``), and all three free (``free``, stated only), and the
+two timings. What of it the diagnosis takes as the recording's convention (``convention``):
+
+- the rendering, where the two differ by more than ``RENDERING_MIN_M2LL`` units of −2 log L
+  with the rig's damping and stiffness; otherwise it cannot be told (to first order in h the
+  two are the same wheel with I and b shifted by b·h/2 and k·h/2) and the rig's own stays;
+- the inertia of the chosen rendering, where it departs from the rig's by more than 3 SEMs
+  and ``INERTIA_MIN_REL``; no mechanism acts as an inertia. Damping and stiffness stay the
+  rig's: a departure there is dry or viscous friction or an unbalanced wheel, which the
+  diagnosis names as mechanisms;
+- the angle's timing where it is not before the command (a negative offset is the torque
+  arriving late: an actuator lag, a mechanism), and the torque channel's skew from it where
+  it is within ``MAX_CONVENTION_SKEW`` samples (more is a sensor delay, a mechanism). A timing
+  within 3 SEMs and 0.1 sample of a whole number is taken as that number.
+
+Computation only: no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from steerlab.analysis.periods import find_excitation, select_periods
+from steerlab.protocols.interchange import RENDERINGS, check_rendering, stated_timing
+from steerlab.protocols.protocol import VirtualWheel
+from steerlab.protocols.records import STATUS_COMPLETE, TrialRecord
+
+F_MAX_HZ = 25.0
+NOISE_BAND_BINS = 48  # unexcited bins per noise band
+NOISE_ITERATIONS = 3
+RENDERING_MIN_M2LL = 10.0
+INERTIA_MIN_REL = 0.005
+MAX_CONVENTION_SKEW = 1.5  # samples
+WHOLE_SAMPLE_TOL = 0.1  # samples: a timing this close to a whole number, within 3 SEMs, is it
+MIN_TIMING_SAMPLES = 0.25  # a smaller departure from reading at the command is not taken
+# The wheel's equation explains the data within this × the noise power, or the data do not pin
+# the wheel down (a clipping rig, dry friction, a lag): its inertia is then the rig's.
+MAX_NOISE_RATIO = 1.5
+MIN_TRIALS = 1
+# Read offsets a timing fit starts from (samples): Steerlab's and the end-of-interval read.
+TIMING_STARTS = ((0.0, 0.0), (1.0, 1.0), (1.0, 0.0), (0.0, 1.0))
+
+
+class RigFromDataError(ValueError):
+    """Data from which the wheel and timing cannot be identified; the message says why."""
+
+
+@dataclass(frozen=True)
+class _Trial:
+    label: str
+    fs_hz: float
+    s: np.ndarray  # j2πf at the bins used
+    excited: np.ndarray
+    band: np.ndarray
+    tp: np.ndarray
+    td: np.ndarray
+    th: np.ndarray
+
+
+@dataclass(frozen=True)
+class WheelFit:
+    """One hypothesis fitted to every trial: a rendering, which of I, b, k are free."""
+
+    rendering: str
+    free: tuple[str, ...]
+    values: dict[str, float]  # inertia_kgm2, damping_Nms_per_rad, stiffness_Nm_per_rad,
+    # theta_offset_samples, torque_offset_samples
+    sem: dict[str, float]
+    m2ll: float  # −2 log L (up to a constant) of the wheel's equation at the excited bins
+    n: int  # complex residuals
+    noise_ratio: float  # mean whitened residual power at the excited bins (1: noise)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "rendering": self.rendering,
+            "free": list(self.free),
+            "values": self.values,
+            "sem": self.sem,
+            "m2ll": self.m2ll,
+            "n_bins": self.n,
+            "noise_ratio": self.noise_ratio,
+        }
+
+
+@dataclass(frozen=True)
+class Convention:
+    """What the simulated rig takes from the data (or from what the recording states)."""
+
+    rendering: str  # "sampled" or "continuous"
+    inertia_kgm2: float
+    theta_offset_samples: float
+    torque_offset_samples: float
+    source: dict[str, str] = field(default_factory=dict)  # per item: "data", "rig", "stated"
+    notes: tuple[str, ...] = ()
+
+    @property
+    def is_steerlab(self) -> bool:
+        return (
+            self.rendering == "sampled"
+            and self.theta_offset_samples == 0.0
+            and self.torque_offset_samples == 0.0
+        )
+
+
+@dataclass(frozen=True)
+class RigFromData:
+    """The study's wheel and timing from its data, and the convention taken from them."""
+
+    rig: VirtualWheel  # the rig's wheel they are compared with (nominal or a rig check's)
+    rig_label: str
+    fits: dict[str, WheelFit]  # "<rendering>/nominal", "<rendering>/free"
+    convention: Convention
+    n_trials: int
+    rendering_told: bool  # whether the data tell the renderings apart
+
+    def sentence(self) -> str:
+        """One line: the data's wheel and timing beside the rig's."""
+        c = self.convention
+        f = self.fits[f"{c.rendering}/nominal"]
+        v, e = f.values, f.sem
+        told = (
+            f"rendered {'continuously' if c.rendering == 'continuous' else 'sampled and held'}"
+            + ("" if self.rendering_told else " (the data cannot tell; the rig's kept)")
+        )
+        timing = (
+            f"angle read {_when(v['theta_offset_samples'], e['theta_offset_samples'])}, "
+            f"torque {_when(v['torque_offset_samples'], e['torque_offset_samples'])}"
+        )
+        r = self.rig
+        return (
+            f"the data: I = {_pm(v['inertia_kgm2'], e['inertia_kgm2'])} kg·m², {told}, "
+            f"{timing}; {self.rig_label}: I = {r.inertia_kgm2:.4g} kg·m², "
+            f"b = {r.damping_nms_per_rad:.4g} N·m·s/rad, k = {r.stiffness_nm_per_rad:.4g} N·m/rad; "
+            f"simulated: {describe(c)}"
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        c = self.convention
+        return {
+            "method": (
+                "G·Tp − Td·e^{−sτ_d h} = [I s² + R(s)(b s + k)]·Θ·e^{−sτ_θ h} at the excited "
+                "bins, R = G (sampled and held) or 1 (continuous), weighted by the residual's "
+                "noise at the unexcited bins; docs/diagnosis.md, 'The rig and the timing'"
+            ),
+            "n_trials": self.n_trials,
+            "rig": {
+                "label": self.rig_label,
+                "inertia_kgm2": self.rig.inertia_kgm2,
+                "damping_Nms_per_rad": self.rig.damping_nms_per_rad,
+                "stiffness_Nm_per_rad": self.rig.stiffness_nm_per_rad,
+            },
+            "fits": {k: f.to_dict() for k, f in self.fits.items()},
+            "rendering_told_apart": self.rendering_told,
+            "convention": {
+                "rendering": c.rendering,
+                "inertia_kgm2": c.inertia_kgm2,
+                "theta_offset_samples": c.theta_offset_samples,
+                "torque_offset_samples": c.torque_offset_samples,
+                "source": c.source,
+                "notes": list(c.notes),
+                "sentence": describe(c),
+            },
+        }
+
+
+def describe(c: Convention) -> str:
+    """The convention in words."""
+    how = "physical (continuous)" if c.rendering == "continuous" else "rendered, sampled and held"
+    return (
+        f"wheel {c.inertia_kgm2:.4g} kg·m², damping and spring {how}; angle read "
+        f"{_when(c.theta_offset_samples, None)}, torque {_when(c.torque_offset_samples, None)}"
+    )
+
+
+def _pm(v: float, e: float | None) -> str:
+    if e is None or not math.isfinite(e):
+        return f"{v:.4g}"
+    digits = max(0, min(6, 1 - int(math.floor(math.log10(abs(e))))) if e > 0 else 4)
+    return f"{v:.{digits}f} ± {e:.1g}"
+
+
+def _when(v: float, e: float | None) -> str:
+    """An offset in samples relative to the command, in words."""
+    if v == 0.0:
+        return "with the command"
+    side = "after" if v > 0 else "before"
+    return f"{_pm(abs(v), e)} sample(s) {side} the command"
+
+
+def zoh(s: np.ndarray, h: float) -> np.ndarray:
+    """G(s) = (1 − e^{−sh})/(sh): a command held over one sample, relative to its sample."""
+    s = np.asarray(s, dtype=complex)
+    out = np.ones_like(s)
+    nz = s != 0
+    out[nz] = (1.0 - np.exp(-s[nz] * h)) / (s[nz] * h)
+    return out
+
+
+def _spectra(x: np.ndarray, start: int, stop: int, bins: np.ndarray) -> np.ndarray:
+    # The diagnosis' own spectra (ramp removed), imported here to keep one definition.
+    from steerlab.analysis.diagnosis.data import channel_spectra
+
+    return channel_spectra(x, start, stop, bins)[0]
+
+
+def _prepare(rec: TrialRecord) -> _Trial | None:
+    if rec.status != STATUS_COMPLETE or rec.familiarization:
+        return None
+    try:
+        sel = select_periods(rec)
+        exc = find_excitation(rec, sel)
+    except ValueError:
+        return None
+    fs = float(rec.fs_hz)
+    P = sel.n_samples
+    f_max = min(max(F_MAX_HZ, 1.25 * float(exc.frequencies_hz.max())), 0.4 * fs)
+    K = int(math.floor(f_max * P / fs))
+    bins = np.arange(1, K + 1)
+    excited = np.isin(bins, exc.bins * sel.n_periods)
+    if not excited.any():
+        return None
+    start, stop = sel.start, sel.stop
+    chans = (rec.perturbation_torque_Nm, rec.driver_torque_Nm, rec.wheel_angle_rad)
+    if not all(
+        np.all(np.isfinite(np.asarray(c)[start : min(stop + 1, rec.n_samples)])) for c in chans
+    ):
+        return None
+    tp = np.fft.rfft(np.asarray(rec.perturbation_torque_Nm, float)[start:stop])[bins] * (2.0 / P)
+    td = _spectra(np.asarray(rec.driver_torque_Nm, float), start, stop, bins)
+    th = _spectra(np.asarray(rec.wheel_angle_rad, float), start, stop, bins)
+    s = 2j * np.pi * bins * fs / P
+    band = (np.arange(K) // NOISE_BAND_BINS).astype(int)
+    if band[-1] > 0 and np.count_nonzero(band == band[-1]) < NOISE_BAND_BINS // 2:
+        band[band == band[-1]] -= 1
+    return _Trial(rec.label(), fs, s, excited, band, tp, td, th)
+
+
+def _residual(t: _Trial, x: np.ndarray, rendering: str) -> np.ndarray:
+    """G·Tp − Td·e^{−sτ_d h} − [I s² + R (b s + k)]·Θ·e^{−sτ_θ h} at every bin of ``t``."""
+    I, b, k, tth, ttd = x
+    h = 1.0 / t.fs_hz
+    G = zoh(t.s, h)
+    R = G if rendering == "sampled" else 1.0
+    th = t.th * np.exp(-t.s * tth * h)
+    td = t.td * np.exp(-t.s * ttd * h)
+    return G * t.tp - td - (I * t.s**2 + R * (b * t.s + k)) * th
+
+
+def _noise_weights(t: _Trial, x: np.ndarray, rendering: str) -> np.ndarray:
+    """1/σ per excited bin: σ² the mean |residual|² at the unexcited bins of its band."""
+    r = _residual(t, x, rendering)
+    var = np.full(len(r), np.nan)
+    for b in np.unique(t.band):
+        m = t.band == b
+        u = m & ~t.excited
+        if u.any():
+            var[m] = np.mean(np.abs(r[u]) ** 2)
+    if not np.isfinite(var).any():
+        var[:] = 1.0
+    var[~np.isfinite(var)] = np.nanmax(var)
+    var = np.maximum(var, np.finfo(float).tiny)
+    return 1.0 / np.sqrt(var[t.excited])
+
+
+def _fit(
+    trials: Sequence[_Trial], rig: VirtualWheel, rendering: str, free: tuple[str, ...]
+) -> WheelFit:
+    names = ("inertia_kgm2", "damping_Nms_per_rad", "stiffness_Nm_per_rad",
+             "theta_offset_samples", "torque_offset_samples")  # fmt: skip
+    base = np.array([rig.inertia_kgm2, rig.damping_nms_per_rad, rig.stiffness_nm_per_rad, 0.0, 0.0])
+    idx = [i for i, n in enumerate(names) if n in free or n.endswith("offset_samples")]
+
+    def full(z: np.ndarray) -> np.ndarray:
+        x = base.copy()
+        x[idx] = z
+        return x
+
+    x = base.copy()
+    weights = [np.ones(int(t.excited.sum())) for t in trials]
+    best = None
+    for it in range(NOISE_ITERATIONS + 1):
+        if it > 0:
+            weights = [_noise_weights(t, x, rendering) for t in trials]
+
+        def fun(z: np.ndarray, weights=weights) -> np.ndarray:
+            xx = full(z)
+            parts = [
+                _residual(t, xx, rendering)[t.excited] * w
+                for t, w in zip(trials, weights, strict=True)
+            ]
+            r = np.concatenate(parts)
+            return np.concatenate([r.real, r.imag])
+
+        starts = TIMING_STARTS if it <= 1 else ((x[3], x[4]),)
+        best = None
+        for a, d in starts:
+            z0 = np.array([*(base[i] for i in idx if i < 3), a, d], dtype=float)
+            if it > 0:
+                z0[: len(idx) - 2] = x[[i for i in idx if i < 3]]
+            r = least_squares(fun, z0, x_scale="jac")
+            if best is None or r.cost < best.cost:
+                best = r
+        x = full(best.x)
+    assert best is not None
+    n = len(best.fun) // 2
+    ratio = float(2.0 * best.cost / n)  # mean |r|²/σ² per complex bin
+    J = best.jac
+    try:
+        cov = np.linalg.pinv(J.T @ J) * max(ratio / 2.0, 0.5)
+        sem_v = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    except np.linalg.LinAlgError:
+        sem_v = np.full(len(idx), np.nan)
+    values = {n_: float(v) for n_, v in zip(names, x, strict=True)}
+    sem = {names[i]: float(e) for i, e in zip(idx, sem_v, strict=True)}
+    return WheelFit(rendering, tuple(free), values, sem, float(4.0 * best.cost), n, ratio)
+
+
+def _timing(v: float, e: float, pinned: bool) -> float:
+    """A fitted timing as the convention takes it: a whole sample where the data allow, and
+    none (0) where it is within 3 SEMs of none or, where the wheel's equation leaves more than
+    noise (not ``pinned``), within MIN_TIMING_SAMPLES."""
+    r = round(v)
+    if abs(v - r) <= 3 * e and abs(v - r) <= WHOLE_SAMPLE_TOL:
+        v = float(r)
+    if abs(v) <= 3 * e or (not pinned and abs(v) < MIN_TIMING_SAMPLES):
+        return 0.0
+    return float(v)
+
+
+def identify(
+    records: Sequence[TrialRecord],
+    rig: VirtualWheel | None = None,
+    rig_label: str = "the rig (nominal)",
+    rig_rendering: str = "sampled",
+    stated: dict[str, Any] | None = None,
+) -> RigFromData:
+    """Identify the wheel and timing from the measured trials of ``records``.
+
+    ``rig``: the wheel the rig is meant to have (nominal by default); ``rig_rendering``: how
+    that rig renders its damping and spring, kept where the data cannot tell; ``stated``: what
+    the recording says of itself (``rendering``, ``theta_offset_samples``,
+    ``torque_offset_samples``), used as stated. Raises :class:`RigFromDataError` when no trial
+    can be used."""
+    rig = rig or VirtualWheel()
+    stated = dict(stated or {})
+    trials = [t for t in (_prepare(r) for r in records) if t is not None]
+    if len(trials) < MIN_TRIALS:
+        raise RigFromDataError(
+            "no complete measured trial with a perturbation to identify the wheel from"
+        )
+    fits: dict[str, WheelFit] = {}
+    for rendering in RENDERINGS:
+        fits[f"{rendering}/nominal"] = _fit(trials, rig, rendering, ("inertia_kgm2",))
+        fits[f"{rendering}/free"] = _fit(
+            trials, rig, rendering, ("inertia_kgm2", "damping_Nms_per_rad", "stiffness_Nm_per_rad")
+        )
+    notes: list[str] = []
+    source: dict[str, str] = {}
+    d = fits["sampled/nominal"].m2ll - fits["continuous/nominal"].m2ll
+    misfit = min(fits["sampled/nominal"].noise_ratio, fits["continuous/nominal"].noise_ratio)
+    # Where the equation leaves more than noise, the difference must stand above that misfit.
+    told = abs(d) > RENDERING_MIN_M2LL * max(1.0, misfit)
+    if "rendering" in stated:
+        rendering = str(stated["rendering"])
+        source["rendering"] = "stated"
+    elif told:
+        rendering = "continuous" if d > 0 else "sampled"
+        source["rendering"] = "data"
+    elif misfit > MAX_NOISE_RATIO:
+        rendering = rig_rendering
+        source["rendering"] = "rig"
+    else:
+        # Both fit as well: the one that needs the smaller change of the rig's inertia (on
+        # equal terms, the rig's own).
+        def change(r: str) -> float:
+            return abs(fits[f"{r}/nominal"].values["inertia_kgm2"] - rig.inertia_kgm2)
+
+        rendering = min(RENDERINGS, key=lambda r: (change(r), r != rig_rendering))
+        source["rendering"] = "rig" if rendering == rig_rendering else "data (closest inertia)"
+    f = fits[f"{rendering}/nominal"]
+    pinned = f.noise_ratio <= MAX_NOISE_RATIO
+    v, e = f.values, f.sem
+    inertia = rig.inertia_kgm2
+    source["inertia"] = "rig"
+    dI = v["inertia_kgm2"] - rig.inertia_kgm2
+    if abs(dI) > 3 * e["inertia_kgm2"] and abs(dI) > INERTIA_MIN_REL * rig.inertia_kgm2:
+        if pinned:
+            inertia = v["inertia_kgm2"]
+            source["inertia"] = "data"
+        else:
+            notes.append(
+                f"the data's wheel inertia ({v['inertia_kgm2']:.4g} kg·m²) is not taken: the "
+                f"wheel's equation leaves {f.noise_ratio:.2g}× the noise power (clipping, dry "
+                "friction or a lag), so the data do not pin the wheel down"
+            )
+    if "theta_offset_samples" in stated:
+        th_off = float(stated["theta_offset_samples"])
+        source["timing"] = "stated"
+        td_off = float(stated.get("torque_offset_samples", th_off))
+    else:
+        source["timing"] = "data"
+        th_off = _timing(v["theta_offset_samples"], e["theta_offset_samples"], pinned)
+        if th_off < 0:
+            notes.append(
+                f"the angle responds {-th_off:.2g} sample(s) later than a rig reading at the "
+                "command would see it: no reading convention does that, so it is left to the "
+                "mechanisms (an actuator lag or delay)"
+            )
+            th_off = 0.0
+        skew = v["torque_offset_samples"] - v["theta_offset_samples"]
+        skew_e = math.hypot(e["torque_offset_samples"], e["theta_offset_samples"])
+        if abs(skew) <= MAX_CONVENTION_SKEW:
+            td_off = th_off + _timing(skew, skew_e, pinned)
+        else:
+            td_off = th_off
+            notes.append(
+                f"the torque is read {skew:+.2g} sample(s) from the angle, more than a recording "
+                f"convention makes (±{MAX_CONVENTION_SKEW:g}): left to the mechanisms (a "
+                "sensor delay)"
+            )
+    conv = Convention(rendering, float(inertia), float(th_off), float(td_off), source, tuple(notes))
+    return RigFromData(rig, rig_label, fits, conv, len(trials), told)
+
+
+def retime(rec: TrialRecord, theta_offset: float, torque_offset: float) -> TrialRecord:
+    """``rec`` with the angle and driver torque moved to the instant of the command (Steerlab's
+    reading: offsets 0). A whole-sample offset moves the samples; a fraction is interpolated by
+    a windowed sinc (exact in phase well below Nyquist; the first and last samples of the record
+    repeat its ends)."""
+    if theta_offset == 0.0 and torque_offset == 0.0:
+        return rec
+    return replace(
+        rec,
+        wheel_angle_rad=_delay(np.asarray(rec.wheel_angle_rad, float), theta_offset),
+        driver_torque_Nm=_delay(np.asarray(rec.driver_torque_Nm, float), torque_offset),
+    )
+
+
+SINC_HALF_TAPS = 16
+
+
+def _delay(x: np.ndarray, d: float) -> np.ndarray:
+    """y[i] = x(i − d), d in samples."""
+    if d == 0.0 or len(x) == 0:
+        return x.copy()
+    n = int(math.floor(d))
+    frac = d - n
+    y = x
+    if frac != 0.0:
+        m = SINC_HALF_TAPS
+        k = np.arange(-m + 1, m + 1)  # taps at x[i − k]
+        w = np.sinc(k - frac) * np.kaiser(2 * m, 6.0)
+        w /= w.sum()
+        pad = np.concatenate([np.full(m, x[0]), x, np.full(m, x[-1])])
+        y = np.zeros(len(x))
+        for kk, ww in zip(k, w, strict=True):
+            y += ww * pad[m - kk : m - kk + len(x)]
+    if n > 0:
+        y = np.concatenate([np.full(n, y[0]), y[:-n]])
+    elif n < 0:
+        y = np.concatenate([y[-n:], np.full(-n, y[-1])])
+    return y
+
+
+def stated_convention(records: Sequence[TrialRecord]) -> dict[str, Any]:
+    """What the recordings say of their timing and rendering (trial attributes
+    ``sample_timing``, ``torque_timing``, ``wheel_rendering``), where every trial that says
+    anything says the same; ``ValueError`` naming two trials that disagree."""
+    out: dict[str, Any] = {}
+    first: dict[str, str] = {}
+    for r in records:
+        a = r.attrs or {}
+        where = r.source or r.label()
+        said: dict[str, Any] = {}
+        if "sample_timing" in a:
+            said["theta_offset_samples"] = stated_timing(a["sample_timing"], where)
+            said["torque_offset_samples"] = said["theta_offset_samples"]
+        if "torque_timing" in a:
+            said["torque_offset_samples"] = stated_timing(
+                a["torque_timing"], where, "torque_timing"
+            )
+        if "wheel_rendering" in a:
+            said["rendering"] = check_rendering(a["wheel_rendering"], where)
+        for k, v in said.items():
+            if k in out and out[k] != v:
+                raise ValueError(
+                    f"{where} and {first[k]} state different {k.replace('_', ' ')} "
+                    f"({v!r} and {out[k]!r}): one study is recorded one way"
+                )
+            out.setdefault(k, v)
+            first.setdefault(k, where)
+    return out

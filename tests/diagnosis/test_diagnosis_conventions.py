@@ -1,0 +1,105 @@
+"""The diagnosis under the recording conventions of other labs' rigs (issue 36).
+
+The team's independent world (``benchmarks/otherworld.py``) records its studies the ways
+labs do (``CONVENTIONS``): the angle and torque read at the end of the command interval, a
+physical wheel (its damping and spring continuous), a 1 kHz loop averaged to 250 Hz, the torque
+channel half a sample off the angle, a low-pass filter on the torque sensor. None of them is a
+mechanism: a study with nothing hidden is ``none`` under each, and a hidden mechanism is named
+under each. The studies reach the diagnosis only through the interchange files and
+``steerlab import``; their truth is deleted first.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from steerlab.analysis import rig_from_data
+from steerlab.analysis.diagnosis import run_diagnosis
+from steerlab.benchmarks.otherworld import CONVENTIONS, HIDDEN, generate_study
+from steerlab.protocols.interchange import import_study
+
+SMALL = dict(subjects=1, conditions=("BT8", "PT"), fs_hz=250.0, n_periods=1, run_in_s=(3.0, 6.0))
+FAMILY_NAME = {
+    "reflex": "reflex_delay",
+    "friction": "coulomb_friction",
+    "stiffening": "stiffness_nonlinearity",
+    "actuator_lag": "actuator_lag",
+    "sensor_delay": "sensor_delay",
+}
+
+
+def study(root: Path, convention: str, mechanisms: list[dict], seed: int, **extra) -> Path:
+    generate_study(
+        root / "csv", seed=seed, mechanisms=mechanisms, **(SMALL | CONVENTIONS[convention] | extra)
+    )
+    import_study(root / "csv", root / "sessions")
+    shutil.rmtree(root / "csv")
+    return root / "sessions"
+
+
+# A loop at 1 kHz recorded as the mean of four cycles is neither rig the simulation has (its
+# wheel rendered at 1 kHz, its outputs averaged: a 1 % loss of amplitude at 20 Hz that no timing
+# offset makes): not yet modelled, so still called `unexplained` (docs/diagnosis.md).
+NOT_YET = {"1k_averaged_250"}
+
+
+@pytest.mark.parametrize(
+    "convention",
+    [
+        pytest.param(c, marks=pytest.mark.xfail(reason="not yet modelled", strict=True))
+        if c in NOT_YET
+        else c
+        for c in sorted(CONVENTIONS)
+    ],
+)
+def test_a_null_study_is_none_under_every_recording_convention(tmp_path, convention):
+    res = run_diagnosis(study(tmp_path, convention, [], seed=3), None, candidates=CANDIDATES)
+    assert res.cause == "none", res.summary()
+    assert res.unexplained["within_noise"], res.unexplained
+
+
+# The families whose names a convention could take (timing: lags and delays; the wheel: friction),
+# and an arm-side one; every family under every convention runs in the slow tier.
+CANDIDATES = ("reflex_delay", "coulomb_friction", "actuator_lag", "sensor_delay", "drift")
+
+
+def test_the_end_of_interval_read_and_a_physical_wheel_are_found_and_taken(tmp_path):
+    res = run_diagnosis(study(tmp_path, "physical_wheel_end", [], seed=4), None, candidates=())
+    conv = res.rig_from_data["convention"]
+    assert conv["rendering"] == "continuous" and conv["source"]["rendering"].startswith("data")
+    assert conv["theta_offset_samples"] == 1.0 and conv["torque_offset_samples"] == 1.0
+    assert conv["source"]["inertia"] == "rig" and conv["source"]["timing"] == "data"
+
+
+def test_a_stated_convention_is_used_as_stated(tmp_path):
+    s = study(tmp_path, "end_of_interval", [], seed=4, state_convention=True)
+    res = run_diagnosis(s, None, candidates=())
+    conv = res.rig_from_data["convention"]
+    assert conv["source"]["timing"] == "stated" and conv["source"]["rendering"] == "stated"
+    assert conv["theta_offset_samples"] == 1.0 and conv["rendering"] == "sampled"
+    assert res.cause == "none", res.summary()
+
+
+def test_without_the_rig_from_the_data_the_null_study_is_a_false_alarm(tmp_path, monkeypatch):
+    """The counterpart: what makes the outside conventions `none` is the identification."""
+
+    steerlab = {"rendering": "sampled", "theta_offset_samples": 0.0, "torque_offset_samples": 0.0}
+
+    def steerlabs_own(records, *a, **k):
+        return rig_from_data.identify(records, *a, **(k | {"stated": steerlab}))
+
+    monkeypatch.setattr("steerlab.analysis.diagnosis.run.identify", steerlabs_own)
+    s = study(tmp_path, "physical_wheel_end", [], seed=4)
+    res = run_diagnosis(s, None, candidates=())
+    assert res.cause == "unexplained", res.summary()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("convention", ["physical_wheel_end"])
+@pytest.mark.parametrize("family", sorted(FAMILY_NAME))
+def test_a_hidden_mechanism_is_named_under_another_labs_convention(tmp_path, convention, family):
+    res = run_diagnosis(study(tmp_path, convention, [HIDDEN[family]], seed=11), None, jobs=2)
+    assert FAMILY_NAME[family] in res.causes[:1], res.summary()
