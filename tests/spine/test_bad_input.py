@@ -21,6 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from steerlab.app.cli import main
+from steerlab.protocols.datafile import load_study
 from steerlab.protocols.interchange import InterchangeError, read_trial
 from steerlab.protocols.protocol import ProtocolError, parse_protocol
 from tests.helpers import edit, fast_protocol_text
@@ -130,7 +131,21 @@ IMPORT_CASES = [
         ["t.json", "NaN"],
     ),
     ("fs huge", GOOD_CSV, {**M, "fs_hz": 1e300}, ["t.json", "'fs_hz'"]),
-    ("trial_index zero", GOOD_CSV, {**M, "trial_index": 0}, ["t.json", "'trial_index'"]),
+    # Other labs number trials from 0 (accepted); a negative index is not a position.
+    ("trial_index negative", GOOD_CSV, {**M, "trial_index": -1}, ["t.json", "'trial_index'"]),
+    (
+        "sample_timing word",
+        GOOD_CSV,
+        {**M, "sample_timing": "middle"},
+        ["t.json", "'sample_timing'"],
+    ),
+    ("torque_timing huge", GOOD_CSV, {**M, "torque_timing": 1e9}, ["t.json", "'torque_timing'"]),
+    (
+        "rendering word",
+        GOOD_CSV,
+        {**M, "wheel_rendering": "rendered"},
+        ["t.json", "'wheel_rendering'"],
+    ),
     ("attempt text", GOOD_CSV, {**M, "attempt": "2"}, ["t.json", "'attempt'"]),
     ("repetition huge", GOOD_CSV, {**M, "repetition": 2**70}, ["t.json", "'repetition'"]),
     (
@@ -164,6 +179,15 @@ def test_bad_import_exits_2_naming_file_and_field(tmp_path, capsys, csv, meta, f
     for f in fragments:
         assert f in err, (f, err)
     assert not out.exists()
+
+
+def test_trials_numbered_from_zero_are_imported(tmp_path):
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "t.csv").write_text(GOOD_CSV)
+    (tmp_path / "in" / "t.json").write_text(json.dumps({**M, "trial_index": 0}))
+    assert main(["import", str(tmp_path / "in"), "--out", str(tmp_path / "out")]) == 0
+    (rec,) = load_study(tmp_path / "out")
+    assert rec.trial_index == 0
 
 
 def test_a_300000_column_header_takes_linear_time(tmp_path, capsys):
