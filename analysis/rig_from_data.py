@@ -348,12 +348,14 @@ def _fit(
 
 def _timing(v: float, e: float, pinned: bool) -> float:
     """A fitted timing as the convention takes it: a whole sample where the data allow, and
-    none (0) where it is within 3 SEMs of none or, where the wheel's equation leaves more than
-    noise (not ``pinned``), within MIN_TIMING_SAMPLES."""
+    none (0) where it is within 3 SEMs of none. Where the wheel's equation leaves more than
+    noise (not ``pinned``: a lag, friction, clipping bend the fit) only a whole number of
+    samples, at least MIN_TIMING_SAMPLES from none, is taken."""
     r = round(v)
-    if abs(v - r) <= 3 * e and abs(v - r) <= WHOLE_SAMPLE_TOL:
+    whole = abs(v - r) <= WHOLE_SAMPLE_TOL
+    if whole and (abs(v - r) <= 3 * e or not pinned):
         v = float(r)
-    if abs(v) <= 3 * e or (not pinned and abs(v) < MIN_TIMING_SAMPLES):
+    if abs(v) <= 3 * e or (not pinned and (abs(v) < MIN_TIMING_SAMPLES or not whole)):
         return 0.0
     return float(v)
 
