@@ -346,14 +346,16 @@ def _fit(
     return WheelFit(rendering, tuple(free), values, sem, float(4.0 * best.cost), n, ratio)
 
 
-def _timing(v: float, e: float, pinned: bool) -> float:
-    """A fitted timing as the convention takes it: a whole sample where the data allow, and
-    none (0) where it is within 3 SEMs of none. Where the wheel's equation leaves more than
+def _timing(v: float, e: float, pinned: bool, snap: bool = False) -> float:
+    """A fitted timing as the convention takes it: a whole sample where the data allow (within
+    3 SEMs, or with ``snap`` within WHOLE_SAMPLE_TOL: a read offset is a convention of whole
+    samples, start or end, where a skew is what a filter makes), and none (0) where it is
+    within 3 SEMs of none. Where the wheel's equation leaves more than
     noise (not ``pinned``: a lag, friction, clipping bend the fit) only a whole number of
     samples, at least MIN_TIMING_SAMPLES from none, is taken."""
     r = round(v)
     whole = abs(v - r) <= WHOLE_SAMPLE_TOL
-    if whole and (abs(v - r) <= 3 * e or not pinned):
+    if whole and (abs(v - r) <= 3 * e or snap or not pinned):
         v = float(r)
     if abs(v) <= 3 * e or (not pinned and (abs(v) < MIN_TIMING_SAMPLES or not whole)):
         return 0.0
@@ -432,7 +434,7 @@ def identify(
         td_off = float(stated.get("torque_offset_samples", th_off))
     else:
         source["timing"] = "data"
-        th_off = _timing(v["theta_offset_samples"], e["theta_offset_samples"], pinned)
+        th_off = _timing(v["theta_offset_samples"], e["theta_offset_samples"], pinned, snap=True)
         if th_off < 0:
             notes.append(
                 f"the angle responds {-th_off:.2g} sample(s) later than a rig reading at the "
