@@ -464,6 +464,8 @@ _PARAM_LABELS = {
     "stiffness_Nm_per_rad": ("k", "N·m/rad"),
     "theta_offset_samples": ("angle read after the command", "samples"),
     "torque_offset_samples": ("torque read after the command", "samples"),
+    "coulomb_Nm": ("dry friction F_c", "N·m"),
+    "gravity_Nm": ("imbalance m·g·r", "N·m"),
 }
 
 
@@ -481,7 +483,7 @@ def _rig_from_data_section(result) -> str:
             v, e = f["values"][p], f["sem"].get(p)
             cells.append(f"{_n(v, 4)} ± {_n(e, 1)}" if e else f"{_n(v, 4)} (rig's)")
         rows.append(
-            [_e(f"{rendering}, {'I free' if which == 'nominal' else 'I, b, k free'}")]
+            [_e(f"{rendering}, {'I free' if which == 'nominal' else 'the wheel free'}")]
             + cells
             + [_n(f["m2ll"], 5), _n(f["noise_ratio"], 3)]
         )

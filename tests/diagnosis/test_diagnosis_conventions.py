@@ -19,6 +19,7 @@ import pytest
 from steerlab.analysis import rig_from_data
 from steerlab.analysis.diagnosis import run_diagnosis
 from steerlab.benchmarks.otherworld import CONVENTIONS, HIDDEN, generate_study
+from steerlab.protocols.datafile import load_study
 from steerlab.protocols.interchange import import_study
 
 SMALL = dict(subjects=1, conditions=("BT8", "PT"), fs_hz=250.0, n_periods=1, run_in_s=(3.0, 6.0))
@@ -72,6 +73,21 @@ def test_the_end_of_interval_read_and_a_physical_wheel_are_found_and_taken(tmp_p
     assert conv["rendering"] == "continuous" and conv["source"]["rendering"].startswith("data")
     assert conv["theta_offset_samples"] == 1.0 and conv["torque_offset_samples"] == 1.0
     assert conv["source"]["inertia"] == "rig" and conv["source"]["timing"] == "data"
+
+
+def test_dry_friction_is_measured_and_does_not_hide_the_convention(tmp_path):
+    """A wheel with 0.15 N·m of Coulomb friction, physical, read at the end: the friction is
+    stated with its SEM (the diagnosis still names it: it is a mechanism, not the rig's
+    convention), and the rendering and timing are found through it."""
+    s = study(tmp_path, "physical_wheel_end", [HIDDEN["friction"]], seed=11)
+    found = rig_from_data.identify(load_study(s))
+    c = found.convention
+    assert c.rendering == "continuous"
+    assert (c.theta_offset_samples, c.torque_offset_samples) == (1.0, 1.0)
+    f = found.fits["continuous/free"]
+    assert f.values["coulomb_Nm"] == pytest.approx(0.15, rel=0.05)
+    assert 0 < f.sem["coulomb_Nm"] < 0.01
+    assert "F_c = 0.15" in found.sentence()
 
 
 def test_a_stated_convention_is_used_as_stated(tmp_path):
