@@ -99,6 +99,18 @@ class ReportResult:
 # The entry point
 
 
+def _timing_line(t: dict) -> str:
+    """How the angle and torque were aligned to the command (analysis.rig_from_data)."""
+    if not t.get("applied"):
+        return ""
+    how = "as the recording states" if t.get("source") == "stated" else "as its data show"
+    return (
+        f'<p class="muted">Recording timing ({how}): the angle was read '
+        f"{t['theta_offset_samples']:g} and the torque {t['torque_offset_samples']:g} sample(s) "
+        "after the command; both were moved to the command's instant before the analysis.</p>"
+    )
+
+
 def write_report(
     session_dir: str | Path,
     out_dir: str | Path,
@@ -480,6 +492,7 @@ def html_page(
         f"The paper's findings: {n_ok} agree, {n_diff} differ, "
         f"{len(res.checks) - n_ok - n_diff} not computed.</p>",
         f'<p class="muted">{_e(wheel_used_sentence(prov.get("input_files", [])))}</p>',
+        _timing_line(prov.get("recording_timing") or {}),
         _warnings(res),
         _contents(images),
         _how_to_read(res),

@@ -52,6 +52,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from steerlab.analysis.periods import find_excitation, select_periods
+from steerlab.protocols.datafile import DataFileError
 from steerlab.protocols.interchange import RENDERINGS, check_rendering, stated_timing
 from steerlab.protocols.protocol import VirtualWheel
 from steerlab.protocols.records import STATUS_COMPLETE, TrialRecord
@@ -578,3 +579,43 @@ def stated_convention(records: Sequence[TrialRecord]) -> dict[str, Any]:
             out.setdefault(k, v)
             first.setdefault(k, where)
     return out
+
+
+#: Trials the report identifies the timing from: enough for SEMs of a few thousandths of a
+#: sample, spread over subjects and conditions, and a few seconds on a large study.
+REPORT_TRIALS = 12
+
+
+def align_to_command(
+    records: Sequence[TrialRecord], max_trials: int | None = REPORT_TRIALS
+) -> tuple[list[TrialRecord], dict[str, Any]]:
+    """The records with the angle and the driver torque moved to the command's instant, as the
+    recording states or its data show (the convention's timing; its rendering and inertia are
+    the diagnosis's concern), and what was done (``results.json``'s ``recording_timing``).
+
+    ``max_trials``: identify from at most this many measured trials, taken evenly across the
+    study (None: all). Records are returned unchanged where nothing can be identified."""
+    records = list(records)
+    try:
+        stated = stated_convention(records)
+    except ValueError as e:  # two trials that state different conventions: bad input
+        raise DataFileError(str(e)) from None
+    measured = [r for r in records if r.status == STATUS_COMPLETE and not r.familiarization]
+    if max_trials is not None and len(measured) > max_trials:
+        pick = np.linspace(0, len(measured) - 1, max_trials).round().astype(int)
+        measured = [measured[i] for i in sorted(set(pick.tolist()))]
+    try:
+        found = identify(measured, stated=stated)
+    except RigFromDataError as e:
+        return records, {"applied": False, "reason": str(e)}
+    c = found.convention
+    moved = [retime(r, c.theta_offset_samples, c.torque_offset_samples) for r in records]
+    return moved, {
+        "applied": not (c.theta_offset_samples == 0.0 and c.torque_offset_samples == 0.0),
+        "theta_offset_samples": c.theta_offset_samples,
+        "torque_offset_samples": c.torque_offset_samples,
+        "source": c.source.get("timing", "data"),
+        "n_trials_identified": found.n_trials,
+        "sentence": found.sentence(),
+        "notes": list(c.notes),
+    }
