@@ -107,7 +107,9 @@ def _timing_line(t: dict) -> str:
     return (
         f'<p class="muted">Recording timing ({how}): the angle was read '
         f"{t['theta_offset_samples']:g} and the torque {t['torque_offset_samples']:g} sample(s) "
-        "after the command; both were moved to the command's instant before the analysis.</p>"
+        "after the command; both were moved to the command's instant before the analysis."
+        + "".join(f" {_e(n)}." for n in t.get("notes", []))
+        + "</p>"
     )
 
 

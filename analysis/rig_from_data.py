@@ -17,26 +17,30 @@ G(s) = (1 − e^{−sh})/(sh) the zero-order hold of a command held over one sam
   fast loop, as a SensoDrive does).
 
 The remnant moves θ and Td together along the wheel's equation, so it cancels there: what is
-left is sensor noise, measured per band at the unexcited bins of the same residual. The fit is
-weighted least squares on the excited bins of every trial at once (shared parameters), the
-noise re-estimated three times; SEMs from the Jacobian, scaled by the residual's own ratio to
-its noise.
+left is sensor noise, measured per band at the unexcited bins of the same residual. Dry
+friction F_c·tanh(ω/ε) and an imbalance's curvature m·g·r·(sin θ − θ) enter through the spectra
+of those functions of the measured angle. The fit is weighted least squares on the excited bins
+of every trial at once (shared parameters), the noise re-estimated three times; SEMs from the
+Jacobian, scaled by the residual's own ratio to its noise where above 1.
 
-What is identified (``RigFromData``), for both renderings: the inertia with damping and
-stiffness held at the rig's (``nominal``), and all three free (``free``, stated only), and the
-two timings. What of it the diagnosis takes as the recording's convention (``convention``):
+Three fits per rendering (``RigFromData.fits``): ``nominal`` (the rig's b and k, I free),
+``friction`` (the same with F_c and m·g·r free), ``free`` (I, b, k, F_c, m·g·r free: the data's
+wheel, stated only); the two timings are free in all. What the simulated rig takes from them
+(``convention``; docs/diagnosis.md, "The rig and the timing, from the data"):
 
-- the rendering, where the two differ by more than ``RENDERING_MIN_M2LL`` units of −2 log L
-  with the rig's damping and stiffness; otherwise it cannot be told (to first order in h the
-  two are the same wheel with I and b shifted by b·h/2 and k·h/2) and the rig's own stays;
-- the inertia of the chosen rendering, where it departs from the rig's by more than 3 SEMs
-  and ``INERTIA_MIN_REL``; no mechanism acts as an inertia. Damping and stiffness stay the
-  rig's: a departure there is dry or viscous friction or an unbalanced wheel, which the
-  diagnosis names as mechanisms;
-- the angle's timing where it is not before the command (a negative offset is the torque
-  arriving late: an actuator lag, a mechanism), and the torque channel's skew from it where
-  it is within ``MAX_CONVENTION_SKEW`` samples (more is a sensor delay, a mechanism). A timing
-  within 3 SEMs and 0.1 sample of a whole number is taken as that number.
+- the rendering, where the ``nominal`` fits differ by more than ``RENDERING_MIN_M2LL`` units
+  of −2 log L (× the residual's ratio to the noise where above 1); otherwise (to first order in
+  h the two are the same wheel with I and b shifted by b·h/2 and k·h/2) the one whose
+  ``friction`` fit needs the smaller change of the rig's inertia, and the rig's own where even
+  that fit leaves more than ``MAX_NOISE_RATIO`` × the noise;
+- from that rendering's ``nominal`` fit where it is within ``MAX_NOISE_RATIO`` × the noise, else
+  its ``friction`` fit (:func:`convention_fit`): the inertia, where it departs from the rig's by
+  more than 3 SEMs and ``INERTIA_MIN_REL`` and the fit is within the noise (no mechanism acts as
+  an inertia; damping and stiffness stay the rig's: a departure there is friction or an
+  unbalanced wheel, which the diagnosis names as mechanisms);
+- the angle's timing where it is not before the command (before it is the torque arriving
+  late: an actuator lag, a mechanism), and the torque's skew from it within
+  ``MAX_CONVENTION_SKEW`` samples (more is a sensor delay, a mechanism): :func:`_timing`.
 
 Computation only: no I/O.
 """
@@ -102,6 +106,11 @@ class _Trial:
     th: np.ndarray
     friction: np.ndarray  # spectrum of tanh(ω/ε), ω the angle's central difference
     gravity: np.ndarray  # spectrum of sin θ − θ (an imbalance beyond its small-angle spring)
+    hold: np.ndarray  # G(s) at the bins
+
+    @property
+    def h(self) -> float:
+        return 1.0 / self.fs_hz
 
 
 @dataclass(frozen=True)
@@ -301,15 +310,17 @@ def _prepare(rec: TrialRecord) -> _Trial | None:
     band = (np.arange(K) // NOISE_BAND_BINS).astype(int)
     if band[-1] > 0 and np.count_nonzero(band == band[-1]) < NOISE_BAND_BINS // 2:
         band[band == band[-1]] -= 1
-    return _Trial(rec.label(), fs, s, excited, band, tp, td, th, friction, gravity)
+    return _Trial(
+        rec.label(), fs, s, excited, band, tp, td, th, friction, gravity, zoh(s, 1.0 / fs)
+    )
 
 
 def _residual(t: _Trial, x: np.ndarray, rendering: str) -> np.ndarray:
     """G·Tp − Td·e^{−sτ_d h} − ([I s² + R (b s + k)]·Θ + F_c·F + m·g·r·S)·e^{−sτ_θ h} at every
     bin of ``t`` (F, S: the spectra of tanh(ω/ε) and sin θ − θ, read with the angle)."""
     I, b, k, tth, ttd, fc, grav = x
-    h = 1.0 / t.fs_hz
-    G = zoh(t.s, h)
+    h = t.h
+    G = t.hold
     R = G if rendering == "sampled" else 1.0
     shift = np.exp(-t.s * tth * h)
     td = t.td * np.exp(-t.s * ttd * h)
@@ -336,8 +347,14 @@ def _noise_weights(t: _Trial, x: np.ndarray, rendering: str) -> np.ndarray:
 
 
 def _fit(
-    trials: Sequence[_Trial], rig: VirtualWheel, rendering: str, free: tuple[str, ...]
+    trials: Sequence[_Trial],
+    rig: VirtualWheel,
+    rendering: str,
+    free: tuple[str, ...],
+    start: WheelFit | None = None,
 ) -> WheelFit:
+    """One hypothesis fitted to every trial; ``start``: a fit of the same rendering to start
+    from (its timings: no search over TIMING_STARTS)."""
     names = FIT_NAMES
     base = np.array(
         [rig.inertia_kgm2, rig.damping_nms_per_rad, rig.stiffness_nm_per_rad, 0.0, 0.0, 0.0, 0.0]
@@ -351,8 +368,13 @@ def _fit(
 
     x = base.copy()
     weights = [np.ones(int(t.excited.sum())) for t in trials]
+    first = 0
+    if start is not None:
+        x[[3, 4]] = start.values["theta_offset_samples"], start.values["torque_offset_samples"]
+        x[0] = start.values["inertia_kgm2"]
+        first = 1
     best = None
-    for it in range(NOISE_ITERATIONS + 1):
+    for it in range(first, NOISE_ITERATIONS + 1):
         if it > 0:
             weights = [_noise_weights(t, x, rendering) for t in trials]
 
@@ -365,7 +387,7 @@ def _fit(
             r = np.concatenate(parts)
             return np.concatenate([r.real, r.imag])
 
-        starts = TIMING_STARTS if it <= 1 else ((x[3], x[4]),)
+        starts = TIMING_STARTS if it == 0 else ((x[3], x[4]),)
         best = None
         for a, d in starts:
             z0 = x[idx].copy() if it > 0 else base[idx].copy()
@@ -440,9 +462,9 @@ def identify(
         # friction absorbs the damping the wrong rendering needs); the inertia and the timing
         # are read with dry friction and an imbalance free (left out, they bend both: a friction
         # study's read offset came out 1.2 samples for 1).
-        fits[f"{rendering}/nominal"] = _fit(trials, rig, rendering, ("inertia_kgm2",))
-        fits[f"{rendering}/friction"] = _fit(trials, rig, rendering, NOMINAL_FREE)
-        fits[f"{rendering}/free"] = _fit(trials, rig, rendering, WHEEL_FREE)
+        plain = fits[f"{rendering}/nominal"] = _fit(trials, rig, rendering, ("inertia_kgm2",))
+        fits[f"{rendering}/friction"] = _fit(trials, rig, rendering, NOMINAL_FREE, plain)
+        fits[f"{rendering}/free"] = _fit(trials, rig, rendering, WHEEL_FREE, plain)
     notes: list[str] = []
     source: dict[str, str] = {}
     d = fits["sampled/nominal"].m2ll - fits["continuous/nominal"].m2ll
@@ -609,13 +631,30 @@ def align_to_command(
     except RigFromDataError as e:
         return records, {"applied": False, "reason": str(e)}
     c = found.convention
-    moved = [retime(r, c.theta_offset_samples, c.torque_offset_samples) for r in records]
+    th, td = c.theta_offset_samples, c.torque_offset_samples
+    notes = [n for n in c.notes if "sensor delay" not in n]
+    if c.source.get("timing") != "stated":
+        # The admittance is the arm's whatever delays the torque channel: a skew beyond what a
+        # convention makes (a sensor delay, which the diagnosis names) is undone here too.
+        f = convention_fit(found.fits, c.rendering)
+        v, e = f.values, f.sem
+        skew = v["torque_offset_samples"] - v["theta_offset_samples"]
+        skew_e = math.hypot(e["torque_offset_samples"], e["theta_offset_samples"])
+        if abs(skew) > MAX_CONVENTION_SKEW:
+            td = th + _timing(skew, skew_e, f.noise_ratio <= MAX_NOISE_RATIO)
+            notes.append(
+                f"the driver torque is recorded {abs(skew):.3g} sample(s) "
+                f"{'later' if skew < 0 else 'earlier'} than the angle "
+                f"({1e3 * abs(skew) * measured[0].fs_hz ** -1:.3g} ms), more than a recording "
+                "convention makes: a sensor delay (steerlab diagnose names it), undone here"
+            )
+    moved = [retime(r, th, td) for r in records]
     return moved, {
-        "applied": not (c.theta_offset_samples == 0.0 and c.torque_offset_samples == 0.0),
-        "theta_offset_samples": c.theta_offset_samples,
-        "torque_offset_samples": c.torque_offset_samples,
+        "applied": not (th == 0.0 and td == 0.0),
+        "theta_offset_samples": th,
+        "torque_offset_samples": td,
         "source": c.source.get("timing", "data"),
         "n_trials_identified": found.n_trials,
         "sentence": found.sentence(),
-        "notes": list(c.notes),
+        "notes": notes,
     }

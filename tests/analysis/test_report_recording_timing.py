@@ -8,9 +8,12 @@ without the alignment the report's b_c was 36 % off and k_c 22 % (benchmarks out
 
 from __future__ import annotations
 
+import csv
 import json
 import shutil
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from steerlab.app.cli import main as cli_main
@@ -39,3 +42,30 @@ def test_the_report_recovers_the_arm_under_another_labs_timing(tmp_path, convent
     else:
         assert (timing["theta_offset_samples"], timing["torque_offset_samples"]) == (1.0, 1.0)
     assert "Recording timing (as its data show)" in (tmp_path / "r" / "index.html").read_text()
+
+
+OUTSIDE = Path(__file__).resolve().parents[3] / "shared" / "data" / "outside-worlds"
+
+
+@pytest.mark.skipif(not OUTSIDE.is_dir(), reason=f"the outside studies are not at {OUTSIDE}")
+@pytest.mark.parametrize("case", ["null", "sensor_delay"])
+def test_the_report_recovers_the_outside_systems_arms(tmp_path, case):
+    """Another lab's studies (read at the end of the interval; one with its torque recorded 12 ms
+    late, which took the report's b_c 97 % off): the arm parameters against their truth."""
+    assert cli_main(["import", str(OUTSIDE / case / "trials"), "--out", str(tmp_path / "s")]) == 0
+    assert cli_main(["report", str(tmp_path / "s"), "--out", str(tmp_path / "r")]) == 0
+    est: dict[tuple[str, str], dict[str, float]] = {}
+    with open(tmp_path / "r" / "per_subject.csv", newline="") as fh:
+        for row in csv.DictReader(fh):
+            est.setdefault((row["subject"], row["condition"]), {})[row["quantity"]] = float(
+                row["value"]
+            )
+    truth = json.loads((OUTSIDE / case / "truth.json").read_text())
+    errors: dict[str, list[float]] = {k: [] for k in ("b_i", "k_i", "b_c", "k_c")}
+    for t in truth["trials"]:
+        subject, _, condition, _ = t["name"].split("_")
+        for k, e in errors.items():
+            e.append(abs(est[(subject, condition)][k] / t[k] - 1.0))
+    med = {k: float(np.median(v)) for k, v in errors.items()}
+    assert med["k_i"] < 0.05 and med["k_c"] < 0.10, med
+    assert med["b_i"] < 0.15 and med["b_c"] < 0.15, med
