@@ -396,6 +396,7 @@ def _fit(
             r = least_squares(fun, z0, x_scale="jac")
             if best is None or r.cost < best.cost:
                 best = r
+        assert best is not None
         x = full(best.x)
     assert best is not None
     n = len(best.fun) // 2
@@ -628,8 +629,8 @@ def align_to_command(
         measured = [measured[i] for i in sorted(set(pick.tolist()))]
     try:
         found = identify(measured, stated=stated)
-    except RigFromDataError as e:
-        return records, {"applied": False, "reason": str(e)}
+    except RigFromDataError as err:
+        return records, {"applied": False, "reason": str(err)}
     c = found.convention
     th, td = c.theta_offset_samples, c.torque_offset_samples
     notes = [n for n in c.notes if "sensor delay" not in n]
@@ -637,9 +638,9 @@ def align_to_command(
         # The admittance is the arm's whatever delays the torque channel: a skew beyond what a
         # convention makes (a sensor delay, which the diagnosis names) is undone here too.
         f = convention_fit(found.fits, c.rendering)
-        v, e = f.values, f.sem
-        skew = v["torque_offset_samples"] - v["theta_offset_samples"]
-        skew_e = math.hypot(e["torque_offset_samples"], e["theta_offset_samples"])
+        val, sem = f.values, f.sem
+        skew = val["torque_offset_samples"] - val["theta_offset_samples"]
+        skew_e = math.hypot(sem["torque_offset_samples"], sem["theta_offset_samples"])
         if abs(skew) > MAX_CONVENTION_SKEW:
             td = th + _timing(skew, skew_e, f.noise_ratio <= MAX_NOISE_RATIO)
             notes.append(

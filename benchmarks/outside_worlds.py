@@ -26,6 +26,7 @@ import shutil
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -34,7 +35,9 @@ from steerlab.benchmarks.otherworld import CONVENTIONS, generate_study, recovery
 from steerlab.protocols.interchange import import_study
 
 DEFAULT_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "outside-worlds"
-SMALL = dict(subjects=1, conditions=("BT8", "PT"), fs_hz=250.0, n_periods=1, run_in_s=(3.0, 6.0))
+SMALL: dict[str, Any] = dict(
+    subjects=1, conditions=("BT8", "PT"), fs_hz=250.0, n_periods=1, run_in_s=(3.0, 6.0)
+)
 
 
 def _diagnose(sessions: Path, jobs: int) -> dict:

@@ -43,7 +43,7 @@ from steerlab.analysis.diagnosis.fit import (
     whitened_power,
 )
 from steerlab.analysis.diagnosis.simulate import remnant_spectrum_fit, simulated_spectra
-from steerlab.analysis.diagnosis.wheel import choose_wheel
+from steerlab.analysis.diagnosis.wheel import DiagnosisWheel, choose_wheel
 from steerlab.analysis.rig_from_data import (
     RigFromData,
     RigFromDataError,
@@ -62,6 +62,7 @@ from steerlab.hardware.sim.model_file import (
 )
 from steerlab.hardware.sim.physiology import ArmParams
 from steerlab.protocols.datafile import load_study
+from steerlab.protocols.records import TrialRecord
 
 ProgressCallback = Callable[[int, int, str], None]
 
@@ -226,12 +227,13 @@ class _Stages:
         self(label)
 
 
-def rig_from_data(records, wheel, choice) -> RigFromData | None:
+def rig_from_data(
+    records: list[TrialRecord], wheel: DiagnosisWheel, keep_inertia: bool
+) -> RigFromData | None:
     """The wheel and timing of the recording, from its data (analysis.rig_from_data): its
-    inertia joins the simulated wheel only where the wheel is the nominal one by default
-    (an option or a rig check's record names a wheel the user chose); its timing and rendering
-    always, unless the recording states them. None where no trial can be used (the
-    diagnosis then says why, trial by trial)."""
+    inertia joins the simulated wheel unless ``keep_inertia`` (an option or a rig check's record
+    names the wheel); its timing and rendering always, unless the recording states them. None
+    where no trial can be used (the diagnosis then says why, trial by trial)."""
     try:
         stated = stated_convention(records)
     except ValueError as e:
@@ -245,7 +247,7 @@ def rig_from_data(records, wheel, choice) -> RigFromData | None:
         )
     except RigFromDataError:
         return None
-    if wheel.measured or choice.chosen_by == "--nominal-wheel":
+    if keep_inertia:
         c = found.convention
         found = replace(
             found,
@@ -306,7 +308,7 @@ def _run(
     # The actuator lag becomes the simulated loop's lag at the data's rate (τ = delay − h/2).
     wheel = choice.wheel(float(np.median([r.fs_hz for r in records])) if records else 1000.0)
     rig_wheel = wheel
-    rig_data = rig_from_data(records, wheel, choice)
+    rig_data = rig_from_data(records, wheel, keep_inertia=wheel.measured or nominal_wheel)
     conv = rig_data.convention if rig_data is not None else None
     if conv is not None:
         records = [

@@ -200,15 +200,12 @@ def _discretised(
 
 def loop(trial, arm: ArmParams, mech: Mechanisms) -> Loop:
     fs = trial.fs_hz
-    w = trial.wheel
     # A physical wheel's spring and damper are in the continuous dynamics; the loop renders none.
-    physical = getattr(trial, "wheel_rendering", "sampled") == "continuous"
-    b_w, k_w = (w.damping_nms_per_rad, w.stiffness_nm_per_rad) if physical else (0.0, 0.0)
-    Ad, Bd = _discretised(float(w.inertia_kgm2), arm, 1.0 / fs, float(b_w), float(k_w))
+    (b_w, k_w), (b_sw, k_sw) = W.wheel_split(trial.wheel, trial.wheel_rendering)
+    Ad, Bd = _discretised(float(trial.wheel.inertia_kgm2), arm, 1.0 / fs, b_w, k_w)
     p = np.zeros(W.N_PARAMS)
     p[W.P_DT] = 1.0 / fs
     mech.configure(p, ConditionBehaviour(arm, 0.0, 0.0, 0.0), fs)
-    k_sw, b_sw = (0.0, 0.0) if physical else (w.stiffness_nm_per_rad, w.damping_nms_per_rad)
     q = _scalars(p, k_sw, b_sw, arm)
     return Loop(Ad, Bd, q, mech.reflex_delay_samples(fs), mech.command_ring_samples(fs))
 

@@ -123,6 +123,15 @@ TRUTH_CHANNELS = (
 )
 
 
+def wheel_split(
+    wheel: VirtualWheel, rendering: str
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The wheel's (damping, stiffness) as ((physical), (rendered by the loop)) for a
+    ``WorldConfig.wheel_rendering``: all physical for "continuous", all rendered otherwise."""
+    bk = (float(wheel.damping_nms_per_rad), float(wheel.stiffness_nm_per_rad))
+    return (bk, (0.0, 0.0)) if rendering == "continuous" else ((0.0, 0.0), bk)
+
+
 def discretise(
     I_w: float, arm, dt: float, b_w: float = 0.0, k_w: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -485,16 +494,9 @@ class World:
 
     # -- trial set-up -------------------------------------------------------------------
     @property
-    def physical_wheel(self) -> bool:
-        """Whether the wheel's damping and spring act continuously (WorldConfig.wheel_rendering)."""
-        return self.cfg.wheel_rendering == "continuous"
-
-    @property
     def _physical(self) -> tuple[float, float]:
         """The wheel's physical (b, k) for :func:`discretise`: zero where the loop renders them."""
-        if not self.physical_wheel:
-            return 0.0, 0.0
-        return self.wheel.damping_nms_per_rad, self.wheel.stiffness_nm_per_rad
+        return wheel_split(self.wheel, self.cfg.wheel_rendering)[0]
 
     def begin_trial(
         self,
@@ -509,9 +511,7 @@ class World:
         dt = 1.0 / cfg.fs_hz
         self.Ad, self.Bd = discretise(cfg.wheel_inertia_kgm2, behaviour.arm, dt, *self._physical)
         p = np.zeros(N_PARAMS)
-        if not self.physical_wheel:
-            p[P_KSW] = self.wheel.stiffness_nm_per_rad
-            p[P_BSW] = self.wheel.damping_nms_per_rad
+        p[P_BSW], p[P_KSW] = wheel_split(self.wheel, cfg.wheel_rendering)[1]
         p[P_QANG] = 2 * np.pi / s.encoder_counts_per_rev if s.encoder_counts_per_rev else 0.0
         p[P_TRES] = s.torque_resolution
         p[P_KC], p[P_BC] = behaviour.arm.k_c, behaviour.arm.b_c
