@@ -103,11 +103,16 @@ def _timing_line(t: dict) -> str:
     """How the angle and torque were aligned to the command (analysis.rig_from_data)."""
     if not t.get("applied"):
         return ""
-    how = "as the recording states" if t.get("source") == "stated" else "as its data show"
+    how = "as its data show" if t.get("source") == "data" else "as the recording states"
+
+    def when(v: float) -> str:
+        side = "after" if v > 0 else "before"
+        return "at the command" if v == 0 else f"{abs(v):.3g} sample(s) {side} it"
+
     return (
         f'<p class="muted">Recording timing ({how}): the angle was read '
-        f"{t['theta_offset_samples']:g} and the torque {t['torque_offset_samples']:g} sample(s) "
-        "after the command; both were moved to the command's instant before the analysis."
+        f"{when(t['theta_offset_samples'])}, the torque {when(t['torque_offset_samples'])}; "
+        "both were moved to the command's instant before the analysis."
         + "".join(f" {_e(n)}." for n in t.get("notes", []))
         + "</p>"
     )

@@ -56,6 +56,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from steerlab.analysis.periods import find_excitation, select_periods
+from steerlab.analysis.rigcheck import EPS_RAD_S as RIGCHECK_EPS_RAD_S
 from steerlab.protocols.datafile import DataFileError
 from steerlab.protocols.interchange import RENDERINGS, check_rendering, stated_timing
 from steerlab.protocols.protocol import VirtualWheel
@@ -72,8 +73,7 @@ MIN_TIMING_SAMPLES = 0.25  # a smaller departure from reading at the command is 
 # The wheel's equation explains the data within this × the noise power, or the data do not pin
 # the wheel down (a clipping rig, dry friction, a lag): its inertia is then the rig's.
 MAX_NOISE_RATIO = 1.5
-MIN_TRIALS = 1
-FRICTION_EPS_RAD_S = 0.01  # the smooth sign tanh(ω/ε), as the rig check's
+FRICTION_EPS_RAD_S = RIGCHECK_EPS_RAD_S  # the smooth sign tanh(ω/ε), as the rig check's
 FIT_NAMES = (
     "inertia_kgm2",
     "damping_Nms_per_rad",
@@ -148,6 +148,9 @@ class Convention:
     torque_offset_samples: float
     source: dict[str, str] = field(default_factory=dict)  # per item: "data", "rig", "stated"
     notes: tuple[str, ...] = ()
+    # A torque skew beyond a convention's (samples; 0: none), left to the diagnosis's
+    # mechanisms (a sensor delay): not the arm's either, so the report undoes it.
+    sensor_skew_samples: float = 0.0
 
     @property
     def is_steerlab(self) -> bool:
@@ -168,6 +171,19 @@ class RigFromData:
     convention: Convention
     n_trials: int
     rendering_told: bool  # whether the data tell the renderings apart
+    fs_hz: float  # the trials' (median) sample rate: a sample in seconds
+
+    def sensor_skew_sentence(self) -> str:
+        """The torque skew left to the mechanisms, in words ("" where there is none)."""
+        skew = self.convention.sensor_skew_samples
+        if skew == 0.0:
+            return ""
+        return (
+            f"the driver torque is recorded {abs(skew):.3g} sample(s) "
+            f"({1e3 * abs(skew) / self.fs_hz:.3g} ms) {'later' if skew < 0 else 'earlier'} than "
+            f"the angle, more than a recording convention makes (±{MAX_CONVENTION_SKEW:g} "
+            "samples): a sensor delay"
+        )
 
     def sentence(self) -> str:
         """One line: the data's wheel and timing beside the rig's."""
@@ -230,6 +246,7 @@ class RigFromData:
                 "theta_offset_samples": c.theta_offset_samples,
                 "torque_offset_samples": c.torque_offset_samples,
                 "source": c.source,
+                "sensor_skew_samples": c.sensor_skew_samples,
                 "notes": list(c.notes),
                 "sentence": describe(c),
             },
@@ -442,8 +459,10 @@ def identify(
     rig_label: str = "the rig (nominal)",
     rig_rendering: str = "sampled",
     stated: dict[str, Any] | None = None,
+    max_trials: int | None = None,
 ) -> RigFromData:
-    """Identify the wheel and timing from the measured trials of ``records``.
+    """Identify the wheel and timing from the measured trials of ``records`` (at most
+    ``max_trials`` of the usable ones, taken evenly across the study).
 
     ``rig``: the wheel the rig is meant to have (nominal by default); ``rig_rendering``: how
     that rig renders its damping and spring, kept where the data cannot tell; ``stated``: what
@@ -453,7 +472,10 @@ def identify(
     rig = rig or VirtualWheel()
     stated = dict(stated or {})
     trials = [t for t in (_prepare(r) for r in records) if t is not None]
-    if len(trials) < MIN_TRIALS:
+    if max_trials is not None and len(trials) > max_trials:
+        pick = np.linspace(0, len(trials) - 1, max_trials).round().astype(int)
+        trials = [trials[i] for i in sorted(set(pick.tolist()))]
+    if not trials:
         raise RigFromDataError(
             "no complete measured trial with a perturbation to identify the wheel from"
         )
@@ -505,12 +527,11 @@ def identify(
                 f"wheel's equation leaves {f.noise_ratio:.2g}× the noise power (clipping, dry "
                 "friction or a lag), so the data do not pin the wheel down"
             )
+    sensor_skew = 0.0
+    # Each channel as stated, else from the data (the torque: the angle's plus the data's skew).
     if "theta_offset_samples" in stated:
         th_off = float(stated["theta_offset_samples"])
-        source["timing"] = "stated"
-        td_off = float(stated.get("torque_offset_samples", th_off))
     else:
-        source["timing"] = "data"
         th_off = _timing(v["theta_offset_samples"], e["theta_offset_samples"], pinned, snap=True)
         if th_off < 0:
             notes.append(
@@ -519,19 +540,23 @@ def identify(
                 "mechanisms (an actuator lag or delay)"
             )
             th_off = 0.0
+    if "torque_offset_samples" in stated:
+        td_off = float(stated["torque_offset_samples"])
+    else:
         skew = v["torque_offset_samples"] - v["theta_offset_samples"]
         skew_e = math.hypot(e["torque_offset_samples"], e["theta_offset_samples"])
         if abs(skew) <= MAX_CONVENTION_SKEW:
             td_off = th_off + _timing(skew, skew_e, pinned)
         else:
             td_off = th_off
-            notes.append(
-                f"the torque is read {skew:+.2g} sample(s) from the angle, more than a recording "
-                f"convention makes (±{MAX_CONVENTION_SKEW:g}): left to the mechanisms (a "
-                "sensor delay)"
-            )
-    conv = Convention(rendering, float(inertia), float(th_off), float(td_off), source, tuple(notes))
-    return RigFromData(rig, rig_label, fits, conv, len(trials), told)
+            sensor_skew = _timing(skew, skew_e, pinned)
+    said = [k for k in ("theta_offset_samples", "torque_offset_samples") if k in stated]
+    source["timing"] = "stated" if len(said) == 2 else ("stated in part" if said else "data")
+    conv = Convention(
+        rendering, float(inertia), float(th_off), float(td_off), source, tuple(notes), sensor_skew
+    )
+    fs = float(np.median([t.fs_hz for t in trials]))
+    return RigFromData(rig, rig_label, fits, conv, len(trials), told, fs)
 
 
 def retime(rec: TrialRecord, theta_offset: float, torque_offset: float) -> TrialRecord:
@@ -552,10 +577,12 @@ SINC_HALF_TAPS = 16
 
 
 def _delay(x: np.ndarray, d: float) -> np.ndarray:
-    """y[i] = x(i − d), d in samples."""
+    """y[i] = x(i − d), d in samples (a non-finite sample spreads over the sinc's 32 taps)."""
     if d == 0.0 or len(x) == 0:
         return x.copy()
     n = int(math.floor(d))
+    if abs(n) + 1 >= len(x):  # nothing of the record is left at the command's instants
+        return np.full(len(x), np.nan)
     frac = d - n
     y = x
     if frac != 0.0:
@@ -623,32 +650,18 @@ def align_to_command(
         stated = stated_convention(records)
     except ValueError as e:  # two trials that state different conventions: bad input
         raise DataFileError(str(e)) from None
-    measured = [r for r in records if r.status == STATUS_COMPLETE and not r.familiarization]
-    if max_trials is not None and len(measured) > max_trials:
-        pick = np.linspace(0, len(measured) - 1, max_trials).round().astype(int)
-        measured = [measured[i] for i in sorted(set(pick.tolist()))]
     try:
-        found = identify(measured, stated=stated)
+        found = identify(records, stated=stated, max_trials=max_trials)
     except RigFromDataError as err:
         return records, {"applied": False, "reason": str(err)}
     c = found.convention
     th, td = c.theta_offset_samples, c.torque_offset_samples
-    notes = [n for n in c.notes if "sensor delay" not in n]
-    if c.source.get("timing") != "stated":
+    notes = list(c.notes)
+    if c.sensor_skew_samples != 0.0:
         # The admittance is the arm's whatever delays the torque channel: a skew beyond what a
         # convention makes (a sensor delay, which the diagnosis names) is undone here too.
-        f = convention_fit(found.fits, c.rendering)
-        val, sem = f.values, f.sem
-        skew = val["torque_offset_samples"] - val["theta_offset_samples"]
-        skew_e = math.hypot(sem["torque_offset_samples"], sem["theta_offset_samples"])
-        if abs(skew) > MAX_CONVENTION_SKEW:
-            td = th + _timing(skew, skew_e, f.noise_ratio <= MAX_NOISE_RATIO)
-            notes.append(
-                f"the driver torque is recorded {abs(skew):.3g} sample(s) "
-                f"{'later' if skew < 0 else 'earlier'} than the angle "
-                f"({1e3 * abs(skew) * measured[0].fs_hz ** -1:.3g} ms), more than a recording "
-                "convention makes: a sensor delay (steerlab diagnose names it), undone here"
-            )
+        td = th + c.sensor_skew_samples
+        notes.append(found.sensor_skew_sentence() + ": undone here")
     moved = [retime(r, th, td) for r in records]
     return moved, {
         "applied": not (th == 0.0 and td == 0.0),

@@ -3,7 +3,9 @@
 CSV header starts with (in any order, extra columns allowed)
 ``time_s,perturbation_torque_Nm,driver_torque_Nm,wheel_angle_rad,grip_force_N``.
 JSON holds at least ``subject``, ``condition``, ``repetition``, ``fs_hz``, and where known
-``familiarization`` (bool) and ``trial_index`` (1-based order in the session).
+``familiarization`` (bool) and ``trial_index`` (order in the session, a whole number ≥ 0), and
+optionally how the recording was made (``sample_timing``, ``torque_timing``,
+``wheel_rendering``: docs/data-format.md).
 Sign convention: ``driver_torque_Nm`` is the torque the wheel exerts on the hands, so that
 S(Tp,θ)/S(Tp,Td) is positive at low frequency.
 

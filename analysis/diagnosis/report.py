@@ -458,6 +458,11 @@ def _wheel_paragraph(result) -> str:
     return f"<p><b>Wheel</b>: {_e(result.wheel_sentence)}.{_e(extra)}</p>"
 
 
+FIT_LABELS = {
+    "nominal": "I free",
+    "friction": "I, F_c, m·g·r free",
+    "free": "I, b, k, F_c, m·g·r free",
+}
 _PARAM_LABELS = {
     "inertia_kgm2": ("I", "kg·m²"),
     "damping_Nms_per_rad": ("b", "N·m·s/rad"),
@@ -483,21 +488,21 @@ def _rig_from_data_section(result) -> str:
             v, e = f["values"][p], f["sem"].get(p)
             cells.append(f"{_n(v, 4)} ± {_n(e, 1)}" if e else f"{_n(v, 4)} (rig's)")
         rows.append(
-            [_e(f"{rendering}, {'I free' if which == 'nominal' else 'the wheel free'}")]
+            [_e(f"{rendering}, {FIT_LABELS.get(which, which)}")]
             + cells
             + [_n(f["m2ll"], 5), _n(f["noise_ratio"], 3)]
         )
     header = ["damping and spring"] + [f"{a} ({u})" for a, u in _PARAM_LABELS.values()]
     header += ["−2 log L", "residual / noise"]
     conv = d["convention"]
-    told = (
-        ""
-        if d.get("rendering_told_apart")
-        else (
-            " The data cannot tell the two renderings apart (to first order in the sample interval "
-            "they are the same wheel with I and b shifted); the rig's is kept."
+    told = ""
+    if conv["source"].get("rendering") in ("rig", "data (closest inertia)"):
+        told = (
+            " The fits with the rig's damping and stiffness do not tell the two renderings apart"
+            " (to first order in the sample interval they are the same wheel with I and b"
+            " shifted); the one nearest the rig's inertia is simulated, the rig's own where the"
+            " data fit neither within the noise."
         )
-    )
     notes = "".join(f"<li>{_e(n)}</li>" for n in conv.get("notes", []))
     return (
         "<h3>The rig and the timing, from the data</h3>"

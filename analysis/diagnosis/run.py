@@ -325,6 +325,8 @@ def _run(
     prep.notes.extend(limit_notes)
     if conv is not None:
         prep.notes.extend(conv.notes)
+        if rig_data is not None and conv.sensor_skew_samples:
+            prep.notes.append(rig_data.sensor_skew_sentence() + ": left to the mechanisms")
     base_mech = Mechanisms()
     model_baseline = None
     base_drift = 0.0

@@ -115,7 +115,8 @@ def test_without_the_rig_from_the_data_the_null_study_is_a_false_alarm(tmp_path,
 # wheel read at the end is named "sensor_delay or actuator_lag (the data cannot tell them
 # apart)", with actuator_lag second (docs/diagnosis.md, "Not yet"). Under every other
 # convention, and every other family under this one, the name is right.
-LAG_UNDER_END_READ = pytest.mark.xfail(reason="a lag under an end-of-interval read", strict=True)
+# Not strict: the two names are confusable there, and which comes first may change with rounding.
+LAG_UNDER_END_READ = pytest.mark.xfail(reason="a lag under an end-of-interval read", strict=False)
 MATRIX = [
     pytest.param(
         family,

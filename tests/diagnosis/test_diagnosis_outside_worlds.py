@@ -70,6 +70,14 @@ def test_the_rig_and_timing_of_the_outside_system_are_found_in_its_data(imported
 
 
 @needs_data
+def test_a_stated_torque_timing_alone_is_used_and_the_angle_found(imported):
+    found = identify(load_study(imported["null"]), stated={"torque_offset_samples": -0.5})
+    c = found.convention
+    assert c.torque_offset_samples == -0.5 and c.theta_offset_samples == 1.0
+    assert c.source["timing"] == "stated in part"
+
+
+@needs_data
 @pytest.mark.parametrize("case", ["null", "sensor_delay"])
 def test_outside_study_is_diagnosed_as_its_truth(imported, case, tmp_path):
     res = run_diagnosis(imported[case], tmp_path / "d")

@@ -19,9 +19,11 @@ import pytest
 
 from steerlab.analysis.diagnosis import run_diagnosis
 from steerlab.analysis.diagnosis.data import recorded_rig_limits
+from steerlab.analysis.rig_from_data import identify
 from steerlab.hardware.safety import SafetyLimits
 from steerlab.hardware.sim import world as world_module
 from steerlab.hardware.sim.world import WorldConfig
+from steerlab.protocols.datafile import load_study
 from tests.diagnosis.test_diagnosis_hidden import protocol
 
 LOW = SafetyLimits(max_torque_nm=3.0)  # the fast protocol's multisine peaks at 5.3 N·m
@@ -75,6 +77,15 @@ def test_recorded_limits_are_read_and_unusable_ones_named(clipped_study, tmp_pat
             f.attrs["rig"] = raw
         limits, notes = recorded_rig_limits(d)
         assert limits == {} and len(notes) == 1 and "unusable" in notes[0], notes
+
+
+def test_steerlabs_own_recording_keeps_steerlabs_conventions(clipped_study):
+    """Steerlab's own simulated rig, clipping its command (the wheel's equation then leaves
+    2.3× the noise): the data's rig is Steerlab's (sampled, read at the command, the rig's
+    inertia), whatever the clipping bends."""
+    found = identify(load_study(clipped_study))
+    assert found.convention.is_steerlab, found.sentence()
+    assert found.convention.inertia_kgm2 == 0.3 and found.convention.sensor_skew_samples == 0.0
 
 
 def test_a_study_clipped_by_its_rig_is_simulated_with_the_recorded_limits(clipped_study, tmp_path):
