@@ -269,7 +269,9 @@ class World:
     record_filter: str = "none"  # "none" | "mean": the recorder's filter on angle and torque
     # Recording conventions a lab's rig may have (CONVENTIONS):
     wheel_rendering: str = "sampled"  # "continuous": a physical spring and damper
-    sample_timing: str = "start"  # "end": angle and torque read at the end of the interval
+    # "end": angle and torque read at the end of the command interval (one control cycle on,
+    # which is one recorded sample only where the loop runs at the record's rate)
+    sample_timing: str = "start"
     torque_skew_s: float = 0.0  # the torque channel samples this much earlier than the angle
     torque_lowpass_hz: float = 0.0  # first-order low-pass of the torque sensor (0: none)
 
@@ -980,6 +982,9 @@ def generate_study(
                 if opts.state_convention:
                     meta["sample_timing"] = opts.sample_timing
                     meta["wheel_rendering"] = opts.wheel_rendering
+                    if opts.torque_skew_s:  # a filter's lag has no one timing: not stated
+                        read = 1.0 if opts.sample_timing == "end" else 0.0
+                        meta["torque_timing"] = read - opts.torque_skew_s * opts.fs_hz
                 write_trial(out, name, rec, meta)
                 n_trials += 1
                 truth["trials"][name] = {
