@@ -217,9 +217,12 @@ def main(argv: list[str]) -> dict:
     ap.add_argument("--quick", action="store_true", help="reduced grid")
     ap.add_argument(
         "--world",
-        choices=("steerlab", "otherworld", "both"),
+        choices=("steerlab", "otherworld", "both", "outside"),
         default="both",
-        help="Steerlab's simulator, the independent one (benchmarks/otherworld.py), or both",
+        help="Steerlab's simulator, the independent one (benchmarks/otherworld.py), or both; "
+        "outside: another lab's studies (shared/data/outside-worlds) and null studies of the "
+        "independent world under every recording convention (benchmarks/outside_worlds.py, "
+        "--seeds of them per convention)",
     )
     ap.add_argument("--seeds", type=int, default=None, help="studies per grid point")
     ap.add_argument("--nulls", type=int, default=None, help="null studies per world")
@@ -239,6 +242,11 @@ def main(argv: list[str]) -> dict:
         help="also write every case's result to this JSON file (or a folder's diagnose.json)",
     )
     a = ap.parse_args(argv)
+    if a.world == "outside":
+        from steerlab.benchmarks import outside_worlds
+
+        jobs = ["--jobs", str(a.study_jobs)] if a.study_jobs > 1 else []
+        return outside_worlds.main(["--conventions", str(a.seeds or 3), *jobs])
     a.study_jobs = max(1, a.study_jobs)
     if a.study_jobs > 1 and a.scheduler:
         # Dask's workers are daemon processes, which cannot start a diagnosis's own pool:
