@@ -67,7 +67,10 @@ NOISE_BAND_BINS = 48  # unexcited bins per noise band
 NOISE_ITERATIONS = 3
 RENDERING_MIN_M2LL = 10.0
 INERTIA_MIN_REL = 0.005
-MAX_CONVENTION_SKEW = 1.5  # samples
+# samples: channels filtered or averaged differently stay within a sample of each other; a
+# torque a whole sample or more late is a sensor delay (a mechanism: Steerlab's own world hides
+# one of a sample)
+MAX_CONVENTION_SKEW = 0.75
 WHOLE_SAMPLE_TOL = 0.1  # samples: a timing this close to a whole number, within 3 SEMs, is it
 MIN_TIMING_SAMPLES = 0.25  # a smaller departure from reading at the command is not taken
 # The wheel's equation explains the data within this × the noise power, or the data do not pin
@@ -510,9 +513,13 @@ def identify(
             return abs(fits[f"{r}/friction"].values["inertia_kgm2"] - rig.inertia_kgm2)
 
         rendering = min(RENDERINGS, key=lambda r: (change(r), r != rig_rendering))
+        if change(rendering) > INERTIA_MIN_REL * rig.inertia_kgm2:
+            rendering = rig_rendering  # neither gives the rig's wheel: a mechanism bends both
         source["rendering"] = "rig" if rendering == rig_rendering else "data (closest inertia)"
     f = convention_fit(fits, rendering)
-    pinned = f.noise_ratio <= MAX_NOISE_RATIO
+    # Pinned down: the rig's own wheel explains the data within noise. Where it does only with
+    # friction free, that friction's form may not be ours (Stribeck): fractions are not taken.
+    pinned = fits[f"{rendering}/nominal"].noise_ratio <= MAX_NOISE_RATIO
     v, e = f.values, f.sem
     inertia = rig.inertia_kgm2
     source["inertia"] = "rig"
