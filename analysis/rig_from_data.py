@@ -62,7 +62,6 @@ from steerlab.protocols.interchange import RENDERINGS, check_rendering, stated_t
 from steerlab.protocols.protocol import VirtualWheel
 from steerlab.protocols.records import STATUS_COMPLETE, TrialRecord
 
-F_MAX_HZ = 25.0
 NOISE_BAND_BINS = 48  # unexcited bins per noise band
 NOISE_ITERATIONS = 3
 RENDERING_MIN_M2LL = 10.0
@@ -291,7 +290,8 @@ def zoh(s: np.ndarray, h: float) -> np.ndarray:
 
 
 def _spectra(x: np.ndarray, start: int, stop: int, bins: np.ndarray) -> np.ndarray:
-    # The diagnosis' own spectra (ramp removed), imported here to keep one definition.
+    # The diagnosis' own spectra (ramp removed); imported here, not at the top: the diagnosis
+    # package imports this module.
     from steerlab.analysis.diagnosis.data import channel_spectra
 
     return channel_spectra(x, start, stop, bins)[0]
@@ -305,12 +305,12 @@ def _prepare(rec: TrialRecord) -> _Trial | None:
         exc = find_excitation(rec, sel)
     except ValueError:
         return None
+    from steerlab.analysis.diagnosis.data import analysis_bins  # the diagnosis' own bin grid
+
     fs = float(rec.fs_hz)
     P = sel.n_samples
-    f_max = min(max(F_MAX_HZ, 1.25 * float(exc.frequencies_hz.max())), 0.4 * fs)
-    K = int(math.floor(f_max * P / fs))
-    bins = np.arange(1, K + 1)
-    excited = np.isin(bins, exc.bins * sel.n_periods)
+    bins, excited, _ = analysis_bins(fs, sel, exc)
+    K = len(bins)
     if not excited.any():
         return None
     start, stop = sel.start, sel.stop

@@ -273,6 +273,16 @@ def _lowpass(x: np.ndarray, fs: float, fc: float) -> np.ndarray:
     return sosfiltfilt(sos, np.asarray(x, dtype=float))
 
 
+def analysis_bins(
+    fs: float, sel: PeriodSelection, exc: Excitation
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The DFT bins of the analysed segment from the first to the top frequency (F_MAX_HZ, or
+    1.25 × the highest excited one, below 0.4 fs), which of them are excited, and that top."""
+    f_max = min(max(F_MAX_HZ, 1.25 * float(exc.frequencies_hz.max())), 0.4 * fs)
+    bins = np.arange(1, int(math.floor(f_max * sel.n_samples / fs)) + 1)
+    return bins, np.isin(bins, exc.bins * sel.n_periods), f_max
+
+
 def prepare_trial(rec: TrialRecord, wheel: VirtualWheel | None = None) -> TrialData:
     """Spectra and signals of one trial; ``ValueError`` (naming the trial) if unusable."""
     wheel = wheel or VirtualWheel()
@@ -286,13 +296,9 @@ def prepare_trial(rec: TrialRecord, wheel: VirtualWheel | None = None) -> TrialD
         )
     sel = select_periods(rec)
     exc = find_excitation(rec, sel)
-    n_per = sel.n_periods
     P = sel.n_samples
-    f_top = exc.frequencies_hz.max()
-    f_max = min(max(F_MAX_HZ, 1.25 * f_top), 0.4 * fs)
-    K = int(math.floor(f_max * P / fs))
-    bins = np.arange(1, K + 1)
-    excited = np.isin(bins, exc.bins * n_per)
+    bins, excited, f_max = analysis_bins(fs, sel, exc)
+    K = len(bins)
     if not excited.any():
         raise ValueError(f"{where}: no excited bin below {f_max:g} Hz")
     start, stop = sel.start, sel.stop
