@@ -8,6 +8,11 @@ end the cycle (SYNC). Samples go out in blocks for the engine.
 Whatever ends the trial (the end, an abort, a fault, an exception, the generator being closed),
 the finalizer leaves the motor at zero torque and disabled.
 
+One-off work (a device's first use: the simulated world compiling its kernels, or loading them
+from numba's cache; the vehicle's functions) is done by :meth:`DeviceLoop.warm_up` before the
+drive is enabled and the clock starts, once per kind of trial: it can take seconds, and in the
+first cycle it would abort the trial as stalled.
+
 Faults that end a trial as aborted (:class:`protocols.engine.TrialFault`, with the reason):
 the emergency stop; a rig health problem (``health()`` returns a reason: lost drive heartbeat,
 drive fault/EMCY, CAN send failure, glove stream stopped or broken); a cycle later than
@@ -100,6 +105,7 @@ class DeviceLoop:
         #: what makes a cycle late. Costs four clock reads per cycle.
         self.trace = False
         warm_up()
+        self._warmed: set[tuple[bool, bool, bool]] = set()
         self._last_cycle = 0.0
         self._suspended = False
         self._stall: str | None = None
@@ -130,8 +136,45 @@ class DeviceLoop:
                 except Exception:  # the loop's finalizer still disables the drive
                     pass
 
+    # -- warm-up -----------------------------------------------------------------------------------
+    def warm_up(self, setup: TrialSetup) -> None:
+        """Do now, with the drive disabled, the one-off work of a trial like ``setup``.
+
+        The trial hooks, then one dry cycle through every device call a cycle makes (health,
+        drive, torque sensor, glove, extras; zero torque, which a disabled drive ignores, and
+        the SYNC): whatever a device does the first time (the simulated world compiles its
+        kernels, or loads them from numba's cache, and draws its first noise block) happens
+        here, not in the first timed cycle. What the calls return is not looked at: a fault
+        they would show is found by the trial's first cycle. The trial's own hooks run again at
+        its start and set the devices up afresh.
+
+        Once per kind of trial (driving, time-varying, hands-off): later calls return at once.
+        :meth:`run_trial` calls it; call it between trials only (the drive must be disabled).
+        """
+        kind = (setup.driving is not None, setup.schedule is not None, setup.hands_off)
+        if kind in self._warmed:
+            return
+        if setup.driving is not None:
+            vehicle_warm_up()
+        for hook in self.trial_hooks:
+            hook(setup)
+        if self.health is not None:
+            self.health()
+        self.drive.read()
+        self.sensor.read()
+        if self.glove is not None:  # a drive test may run without one
+            self.glove.latest()
+        if self.sample_extras is not None:
+            self.sample_extras()
+        self.drive.set_torque(0.0)
+        self.drive.sync()
+        self._warmed.add(kind)
+
     # -- the trial ---------------------------------------------------------------------------------
     def run_trial(self, setup: TrialSetup, control: LoopControl) -> Iterator[dict]:
+        # Before anything is timed: the watchdog and the stall check arm only for cycles in
+        # steady state.
+        self.warm_up(setup)
         for hook in self.trial_hooks:
             hook(setup)
         if self.display is not None:
@@ -151,8 +194,7 @@ class DeviceLoop:
         # A driving trial: the vehicle's aligning torque joins the perturbation in the command.
         vehicle = None
         if setup.driving is not None:
-            vehicle_warm_up()  # compiled now, not in the first cycle
-            vehicle = VehicleRenderer(setup.driving, fs)
+            vehicle = VehicleRenderer(setup.driving, fs)  # compiled by warm_up()
         ta = 0.0
         stall_s = self.safety.loop_stall_s
         cmd = 0.0
