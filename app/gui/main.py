@@ -7,7 +7,12 @@ import sys
 from collections.abc import MutableMapping
 
 from steerlab.app.gui.rig import RigError, check_rig_path
-from steerlab.app.gui.system_libs import check_xcb, missing_libraries_message, uses_xcb
+from steerlab.app.gui.system_libs import (
+    check_xcb,
+    missing_libraries_message,
+    no_display,
+    uses_xcb,
+)
 from steerlab.protocols.protocol import load_protocol
 
 #: The GIL switch interval while the GUI runs, s. Python's default (5 ms) lets the GUI thread
@@ -50,6 +55,10 @@ def choose_platform(environ: MutableMapping[str, str] | None = None) -> str | No
 
 def run_gui(rig: str | None, out: str, protocol: str | None) -> int:
     """Open the windows and run until the experimenter window is closed; the exit code."""
+    reason = no_display()
+    if reason is not None:  # before anything else: Qt would abort the interpreter
+        print(f"steerlab gui: {reason}", file=sys.stderr)
+        return 2
     proto = load_protocol(protocol)  # ProtocolError: the CLI prints it (exit 2)
     try:
         check_rig_path(rig)

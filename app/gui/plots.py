@@ -87,11 +87,30 @@ class Trace:
 # The grip panel's left and right hands carry nearly the same force (each about half the
 # total), so one thin line would hide the other: the left is drawn first as a wide, pale band
 # and the right as a thin line on top, so both stay visible when they coincide.
-_PANELS: tuple[tuple[str, str, tuple[Trace, ...], float], ...] = (
-    ("Perturbation torque", "N·m", (Trace("perturbation_torque_Nm", None, "#d62728"),), 1.0),
-    ("Driver torque", "N·m", (Trace("driver_torque_Nm", None, "#1f77b4"),), 1.0),
-    ("Wheel angle", "°", (Trace("wheel_angle_rad", None, "#2ca02c"),), 180.0 / math.pi),
-    (
+@dataclass(frozen=True)
+class Panel:
+    """One plot: title, unit (the left axis label), curves, channel → plot scale, and the
+    smallest y span shown (plot units), so an empty or constant trace (an aborted trial, the
+    silence before a fade-in) keeps a readable scale instead of zooming into rounding noise."""
+
+    title: str
+    unit: str
+    traces: tuple[Trace, ...]
+    scale: float = 1.0
+    min_span: float = 1.0
+
+
+_PANELS: tuple[Panel, ...] = (
+    Panel("Perturbation torque", "N·m", (Trace("perturbation_torque_Nm", None, "#d62728"),)),
+    Panel("Driver torque", "N·m", (Trace("driver_torque_Nm", None, "#1f77b4"),)),
+    Panel(
+        "Wheel angle",
+        "°",
+        (Trace("wheel_angle_rad", None, "#2ca02c"),),
+        scale=180.0 / math.pi,
+        min_span=4.0,
+    ),
+    Panel(
         "Grip force",
         "N",
         (
@@ -99,7 +118,7 @@ _PANELS: tuple[tuple[str, str, tuple[Trace, ...], float], ...] = (
             Trace("grip_force_right_N", "right", "#ff7f0e"),
             Trace("grip_force_N", "total", "#222222"),
         ),
-        1.0,
+        min_span=10.0,
     ),
 )
 
@@ -182,14 +201,20 @@ class HeldRange:
     of a pyqtgraph frame); this one changes a few times per trial.
     """
 
-    def __init__(self, floor: float = 0.0, hold_s: float = 3.0, margin: float = 0.15) -> None:
+    def __init__(
+        self, floor: float = 0.0, hold_s: float = 3.0, margin: float = 0.15, min_span: float = 1.0
+    ) -> None:
         self.floor, self.hold_s, self.margin = floor, hold_s, margin
-        self.lo, self.hi = -1.0, 1.0
+        self.min_span = min_span
+        self.lo, self.hi = -0.5 * min_span, 0.5 * min_span
         self._since = 0.0
 
     def update(self, lo: float, hi: float, now: float) -> tuple[float, float] | None:
         """The new range, or None to keep the current one."""
         lo, hi = min(lo, -self.floor), max(hi, self.floor)
+        if hi - lo < self.min_span:  # flat data: centred on it, never narrower than min_span
+            mid = 0.5 * (lo + hi)
+            lo, hi = mid - 0.5 * self.min_span, mid + 0.5 * self.min_span
         pad = self.margin * max(hi - lo, 1e-9)
         want_lo, want_hi = lo - pad, hi + pad
         grow = want_lo < self.lo or want_hi > self.hi
@@ -245,18 +270,21 @@ class LivePlots(pg.GraphicsLayoutWidget):
         self.legends: list[pg.LegendItem] = []
         self._scale: dict[str, float] = {}
         self._panel_of: dict[str, int] = {}
-        for row, (title, unit, traces, scale) in enumerate(_PANELS):
+        for row, panel in enumerate(_PANELS):
             p = self.addPlot(row=row, col=0)
-            p.setTitle(title, size="9pt")
-            p.setLabel("left", unit)
+            p.setTitle(panel.title, size="9pt")
+            p.setLabel("left", panel.unit)
+            # pyqtgraph would rescale a small range by an SI factor and append it to the label
+            # ("N·m (x0.001)"): fixed units, and tick values in those units.
+            p.getAxis("left").enableAutoSIPrefix(False)
             p.setMenuEnabled(False)
             p.setMouseEnabled(x=False, y=False)
             p.hideButtons()
             p.disableAutoRange()
             p.setXRange(-window_s, 0.0, padding=0)
-            p.setYRange(-1.0, 1.0, padding=0)
+            p.setYRange(-0.5 * panel.min_span, 0.5 * panel.min_span, padding=0)
             p.addItem(pg.InfiniteLine(pos=0.0, angle=0, pen=pg.mkPen("#cccccc", width=1)))
-            named = [t for t in traces if t.name]
+            named = [t for t in panel.traces if t.name]
             if named:
                 # In the title row's right end, out of the layout (a layout cell would narrow
                 # this plot against the others): never over the data.
@@ -265,18 +293,18 @@ class LivePlots(pg.GraphicsLayoutWidget):
                 legend.setParentItem(p)
                 legend.anchor(itemPos=(1, 0), parentPos=(1, 0), offset=(-10, 0))
                 self.legends.append(legend)
-            for t in traces:
+            for t in panel.traces:
                 c = LiveCurve(t.colour, t.width_px)
                 p.addItem(c, ignoreBounds=True)
                 if t.name:
                     legend.addItem(c, t.name)
                 self.curves[t.channel] = c
-                self._scale[t.channel] = scale
+                self._scale[t.channel] = panel.scale
                 self._panel_of[t.channel] = row
             if row < len(_PANELS) - 1:
                 p.getAxis("bottom").setStyle(showValues=False)
             self.plots.append(p)
-            self.ranges.append(HeldRange())
+            self.ranges.append(HeldRange(min_span=panel.min_span))
         self.plots[-1].setLabel("bottom", "time before now", "s")
         self.boundary_lines = [
             pg.InfiniteLine(angle=0, pen=pg.mkPen("#d62728", width=1, style=pg.QtCore.Qt.DashLine))

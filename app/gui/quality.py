@@ -111,7 +111,11 @@ class QualityCheck:
             )
             out.append(("late cycles", f"{lp.get('late_cycles', 0)} of {lp.get('cycles', 0)}"))
         else:
-            out.append(("loop timing", "not paced (no timing figures)" if not lp else str(lp)))
+            # Words, not a dict's repr: a loop that is not paced reports counts only.
+            counts = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in lp.items())
+            out.append(
+                ("loop timing", "not paced, no timing figures" + (f" ({counts})" if counts else ""))
+            )
         return out
 
 

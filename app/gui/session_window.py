@@ -18,7 +18,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from PySide6.QtCore import Qt, QTimer
-from PySide6.QtGui import QCloseEvent, QColor, QFont, QKeySequence, QScreen, QShortcut
+from PySide6.QtGui import (
+    QCloseEvent,
+    QColor,
+    QFont,
+    QKeySequence,
+    QResizeEvent,
+    QScreen,
+    QShortcut,
+)
 from PySide6.QtWidgets import (
     QAbstractItemView,
     QCheckBox,
@@ -56,11 +64,12 @@ from steerlab.app.gui.controller import (
 from steerlab.app.gui.dashboard import DEFAULT_SPAN_DEG, SubjectDashboard
 from steerlab.app.gui.live_admittance import LiveAdmittancePanel
 from steerlab.app.gui.livedata import LiveData
-from steerlab.app.gui.placement import side_by_side
+from steerlab.app.gui.placement import GAP, MIN_DASHBOARD_WIDTH, side_by_side
 from steerlab.app.gui.plots import CoherencePlot, LivePlots, RateMeter
 from steerlab.app.gui.quality import QualityCheck, quality_check
 from steerlab.app.gui.tracker_feed import TrackerFeed
 from steerlab.protocols import events as ev
+from steerlab.protocols.latin_square import subject_row, williams_square
 from steerlab.protocols.protocol import Protocol
 from steerlab.protocols.session import TrialSpec, subject_id
 
@@ -88,6 +97,16 @@ _STATE_COLOUR = {
 }
 
 
+_ESTOP_STYLE = (
+    "QPushButton { background: #d00000; color: white; border-radius: 6px; }"
+    "QPushButton:pressed { background: #800000; }"
+    # Latched: a different colour at a glance, so nobody takes the rig for ready.
+    "QPushButton:checked { background: #ffd60a; color: black; border: 5px solid #d00000; }"
+)
+ESTOP_TEXT = "EMERGENCY STOP"
+ESTOP_LATCHED_TEXT = "E-STOP LATCHED"
+
+
 def _same_screen(a: QScreen | None, b: QScreen | None) -> bool:
     return a is not None and b is not None and a.geometry() == b.geometry()
 
@@ -102,6 +121,19 @@ def _boundary_text(b: float) -> str:
     if not math.isfinite(b):
         return "none"
     return "centre" if b == 0 else f"±{b:g}°"
+
+
+def order_text(protocol: Protocol, row: int) -> str:
+    """The subject's condition order as a person counts it: "order 2 of 6" for row 1."""
+    n = len(williams_square(len(protocol.condition_names)))
+    return f"condition order {row + 1} of {n}"
+
+
+def trial_text(trial_index: int, condition: str, attempt: int | None = None) -> str:
+    """How a trial is named on screen ("trial 2 (RT, attempt 1)"): the session file's group
+    name ("02_RT_rep1_a1") is for programs."""
+    again = f", attempt {attempt}" if attempt is not None else ""
+    return f"trial {trial_index} ({condition}{again})"
 
 
 class ExperimenterWindow(QMainWindow):
@@ -136,7 +168,16 @@ class ExperimenterWindow(QMainWindow):
         self.road = road_view.install(self.dashboard, protocol, self._display_vehicle)
         self.last_quality: QualityCheck | None = None
         self.events_seen: list[object] = []  # for tests and the log; events are small
+        self._trial_names: dict[str, str] = {}  # event key → what the screen calls the trial
         self._closing = False
+        self._placing = False
+        self._beside = False  # the dashboard was put beside this window, on its screen
+        # A window that grows (its content's minimum width) is checked once the resize is
+        # over: the dashboard beside it must not end up over it.
+        self._clear_timer = QTimer(self)
+        self._clear_timer.setSingleShot(True)
+        self._clear_timer.setInterval(0)
+        self._clear_timer.timeout.connect(self._keep_dashboard_clear)
 
         central = QWidget()
         outer = QVBoxLayout(central)
@@ -168,20 +209,20 @@ class ExperimenterWindow(QMainWindow):
     # -- layout -----------------------------------------------------------------------------------
     def _build_safety_bar(self) -> QHBoxLayout:
         bar = QHBoxLayout()
-        self.estop_button = QPushButton("EMERGENCY STOP")
+        self.estop_button = QPushButton(ESTOP_TEXT)
         self.estop_button.setMinimumHeight(56)
         self.estop_button.setMinimumWidth(260)
         f = QFont()
         f.setPointSize(16)
         f.setBold(True)
         self.estop_button.setFont(f)
-        self.estop_button.setStyleSheet(
-            "QPushButton { background: #d00000; color: white; border-radius: 6px; }"
-            "QPushButton:pressed { background: #800000; }"
-        )
+        self.estop_button.setStyleSheet(_ESTOP_STYLE)
+        # Checked while latched; only the controller's state sets it, never a click.
+        self.estop_button.setCheckable(True)
         self.estop_button.setToolTip("Motor to zero torque and off, trial aborted (Esc)")
         # pressed, not clicked: act on the press; and straight to the engine, no queue.
         self.estop_button.pressed.connect(self.emergency_stop)
+        self.estop_button.clicked.connect(self._show_estop_state)
         QShortcut(QKeySequence(Qt.Key.Key_Escape), self, self.emergency_stop)
         self.release_button = QPushButton("Release emergency stop")
         self.release_button.clicked.connect(self._release_estop)
@@ -348,7 +389,10 @@ class ExperimenterWindow(QMainWindow):
         order = self.controller.preview_order(n)
         exists = session_path(self.data_root, subject_id(n)).exists()
         note = "  (file exists: resume it)" if exists else ""
-        self.order_label.setText(f"{subject_id(n)} condition order: {' → '.join(order)}{note}")
+        row = subject_row(n, len(self.protocol.condition_names))
+        self.order_label.setText(
+            f"{subject_id(n)}, {order_text(self.protocol, row)}: {' → '.join(order)}{note}"
+        )
 
     def _refresh_sessions(self) -> None:
         self.session_combo.blockSignals(True)
@@ -377,7 +421,7 @@ class ExperimenterWindow(QMainWindow):
         assert plan is not None
         self._lock_session_choice()
         self.order_label.setText(
-            f"{plan.subject} (Latin-square row {plan.latin_square_row}): "
+            f"{plan.subject}, {order_text(self.protocol, plan.latin_square_row)}: "
             f"{' → '.join(plan.condition_order)}\nfile: {self.controller.path}"
         )
         self._refresh_table()
@@ -439,18 +483,23 @@ class ExperimenterWindow(QMainWindow):
         c = self.controller
         if isinstance(event, ev.TrialStarted):
             c.note_event(event)
+            self._trial_names[event.key] = trial_text(
+                event.trial_index, event.condition, event.attempt
+            )
             b = float(event.attributes.get("boundary_deg", math.inf))
             self.plots.set_boundary(b)
             self.dashboard.show_condition(event.condition, b)
             self.road.trial_started(event.attributes)  # a driving trial shows the road
             self.dashboard.set_active(True, HANDS_OFF_MESSAGE if c.is_rig_check else "")
+            self._alert("")  # the previous trial's abort or warning is not about this one
             self._show_next()
         elif isinstance(event, ev.TrialEnded):
             self.dashboard.set_active(False, "break")
             self._quality(event)
             self._show_next()  # the box never shows a finished trial: the next one, at once
             if event.status != "complete":
-                self._alert(f"trial {event.key} aborted: {event.reason}")
+                name = self._trial_names.get(event.key, f"trial {event.trial_index}")
+                self._alert(f"{name} aborted: {event.reason}")
             elif c.is_rig_check:
                 self._identify_rig_check()
         elif isinstance(event, RigCheckDone):
@@ -490,17 +539,22 @@ class ExperimenterWindow(QMainWindow):
                 loop_stats=end.stats,
             )
         except Exception as e:  # a figure that cannot be computed must not hide the others
-            self._alert(f"quality check of {end.key} failed: {e!r}")
+            name = self._trial_names.get(end.key, f"trial {end.trial_index}")
+            self._alert(f"quality check of {name} failed: {e!r}")
             return
         self.last_quality = q
         self._show_quality(q)
 
     def _show_quality(self, q: QualityCheck) -> None:
+        name = self._trial_names.get(q.key, q.key)
         while self.quality_form.rowCount():
             self.quality_form.removeRow(0)
         self.quality_labels = {}
         for label, value in q.rows():
+            if label == "trial":
+                value = f"{name}: {q.status}"
             lb = QLabel(value)
+            lb.setWordWrap(True)  # a long value wraps instead of widening the window
             self.quality_labels[label] = lb
             self.quality_form.addRow(label, lb)
         self.quality_warnings.setText("; ".join(q.warnings))
@@ -522,6 +576,17 @@ class ExperimenterWindow(QMainWindow):
         else:
             self._alert("emergency stop: motor off, trial aborted. Check the subject and the rig.")
         self._update_controls()
+
+    def _show_estop_state(self) -> None:
+        latched = self.controller.estop_latched
+        self.estop_button.setChecked(latched)
+        self.estop_button.setText(ESTOP_LATCHED_TEXT if latched else ESTOP_TEXT)
+        self.estop_button.setToolTip(
+            "Latched: motor off. Check the subject and the rig, then Release emergency stop "
+            "(pressing it again stops again)"
+            if latched
+            else "Motor to zero torque and off, trial aborted (Esc)"
+        )
 
     def _release_estop(self) -> None:
         self._do(self.controller.release_estop)
@@ -553,7 +618,7 @@ class ExperimenterWindow(QMainWindow):
         self.start_button.setEnabled(c.can_start())
         self.pause_button.setEnabled(open_ and in_trial and not paused_in_trial)
         self.resume_button.setEnabled(bool(paused_in_trial) and not c.estop_latched)
-        self.abort_button.setEnabled(open_ and c.worker_alive)
+        self.abort_button.setEnabled(open_ and in_trial)  # not while waiting for start
         sel = self._selected_trial()
         self.redo_button.setEnabled(
             open_ and not in_trial and sel is not None and c.engine is not None
@@ -561,6 +626,7 @@ class ExperimenterWindow(QMainWindow):
         )  # fmt: skip
         self.release_button.setVisible(c.estop_latched)
         self.estop_button.setEnabled(True)  # never disabled
+        self._show_estop_state()
         if c.engine is None:
             self.state_label.setText("no session")
         else:
@@ -672,6 +738,7 @@ class ExperimenterWindow(QMainWindow):
         if screen is not None and not full and _same_screen(screen, self.screen()):
             self._place_beside()  # never centred over this window and its stop button
             return
+        self._beside = False
         self.dashboard.show_on(screen, full)
 
     def place_windows(self) -> None:
@@ -679,8 +746,9 @@ class ExperimenterWindow(QMainWindow):
 
         Without a window manager both windows open at the top-left corner and the dashboard
         would cover EMERGENCY STOP. With a second screen the dashboard goes there (it is the
-        subject's monitor); on one screen the windows are put side by side
-        (:func:`steerlab.app.gui.placement.side_by_side`).
+        subject's monitor) and this window is fitted into its own screen; on one screen the
+        windows are put side by side (:func:`steerlab.app.gui.placement.side_by_side`), and
+        put side by side again if this window grows over the dashboard.
         """
         mine = self.screen()
         others = [s for s in SubjectDashboard.screens() if not _same_screen(s, mine)]
@@ -689,31 +757,83 @@ class ExperimenterWindow(QMainWindow):
             for i in range(self.screen_combo.count()):
                 if _same_screen(self.screen_combo.itemData(i), target):
                     self.screen_combo.setCurrentIndex(i)
+            self._fit_on_screen()
+            self._beside = False
             self.dashboard.show_on(target, self.fullscreen_check.isChecked())
             return
         self._place_beside()
 
+    def _frame_extra(self, w: QWidget) -> tuple[int, int]:
+        """Title bar and borders around ``w`` (none without a window manager), px."""
+        extra = w.frameGeometry().size() - w.geometry().size()
+        return extra.width(), extra.height()
+
+    def _fit_on_screen(self) -> None:
+        """Shrink and move this window (not below its minimum) into its screen."""
+        geo = self.screen().availableGeometry()
+        fw, fh = self._frame_extra(self)
+        hint = self.minimumSizeHint()
+        w = max(hint.width(), min(self.width(), geo.width() - fw))
+        h = max(hint.height(), min(self.height(), geo.height() - fh))
+        f = self.frameGeometry()
+        x = max(geo.x(), min(f.x(), geo.x() + geo.width() - (w + fw)))
+        y = max(geo.y(), min(f.y(), geo.y() + geo.height() - (h + fh)))
+        self._placing = True
+        try:
+            self.resize(w, h)
+            self.move(x, y)  # move() places the frame, resize() sizes the inside
+        finally:
+            self._placing = False
+
     def _place_beside(self) -> None:
         geo = self.screen().availableGeometry()
         d = self.dashboard
-        # Frame sizes (title bar, borders; none without a window manager).
-        ef = self.frameGeometry().size() - self.geometry().size()
-        df = d.frameGeometry().size() - d.geometry().size()
+        efw, efh = self._frame_extra(self)
+        dfw, dfh = self._frame_extra(d)
         hint = self.minimumSizeHint()
         exp, dash = side_by_side(
             (geo.x(), geo.y(), geo.width(), geo.height()),
-            (self.width() + ef.width(), self.height() + ef.height()),
-            (hint.width() + ef.width(), hint.height() + ef.height()),
-            (d.width() + df.width(), d.height() + df.height()),
+            (self.width() + efw, self.height() + efh),
+            (hint.width() + efw, hint.height() + efh),
+            (d.width() + dfw, d.height() + dfh),
         )
-        self.move(exp[0], exp[1])  # move() places the frame, resize() sizes the inside
-        self.resize(exp[2] - ef.width(), exp[3] - ef.height())
+        self._placing = True
+        try:
+            self.move(exp[0], exp[1])  # move() places the frame, resize() sizes the inside
+            self.resize(exp[2] - efw, exp[3] - efh)
+            if d.isFullScreen():
+                d.showNormal()
+            d.move(dash[0], dash[1])
+            d.resize(dash[2] - dfw, dash[3] - dfh)
+            d.show()
+            d.raise_()
+        finally:
+            self._placing = False
+        self._beside = True
+
+    def resizeEvent(self, event: QResizeEvent) -> None:  # noqa: N802 (Qt's name)
+        super().resizeEvent(event)
+        if not self._placing:
+            self._clear_timer.start()
+
+    def _keep_dashboard_clear(self) -> None:
+        """Put the windows side by side again if this one has grown over the dashboard that
+        was put beside it (a dashboard the experimenter sent elsewhere, or full screen, stays)."""
+        d = self.dashboard
+        if not self._beside or self._closing or not (self.isVisible() and d.isVisible()):
+            return
         if d.isFullScreen():
-            d.showNormal()
-        d.move(dash[0], dash[1])
-        d.resize(dash[2] - df.width(), dash[3] - df.height())
-        d.show()
-        d.raise_()
+            return
+        if not _same_screen(d.screen(), self.screen()):
+            return
+        if not self.frameGeometry().intersects(d.frameGeometry()):
+            return
+        # Only where both fit: on a narrower screen no placement is free of overlap, and a
+        # window manager that clamps the window would be fought for ever.
+        fw, _ = self._frame_extra(self)
+        room = self.screen().availableGeometry().width() - GAP - MIN_DASHBOARD_WIDTH
+        if self.minimumSizeHint().width() + fw <= room:
+            self._place_beside()
 
     # -- closing ----------------------------------------------------------------------------------
     def closeEvent(self, event: QCloseEvent) -> None:  # noqa: N802 (Qt's name)

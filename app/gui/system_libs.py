@@ -90,6 +90,20 @@ def uses_xcb(environ: Mapping[str, str] | None = None, platform: str | None = No
     return first in ("", "xcb")
 
 
+def no_display(environ: Mapping[str, str] | None = None, platform: str | None = None) -> str | None:
+    """Why Qt cannot open a window here, or None. On Linux with Qt's default (X11) platform
+    and neither ``DISPLAY`` nor ``WAYLAND_DISPLAY`` set (an ssh login, a service), Qt itself
+    would abort the interpreter with a hint about ``libxcb-cursor0``, which is beside the
+    point."""
+    env = os.environ if environ is None else environ
+    if not uses_xcb(env, platform) or env.get("DISPLAY") or env.get("WAYLAND_DISPLAY"):
+        return None
+    return (
+        "no display (DISPLAY and WAYLAND_DISPLAY are unset); run it on a desktop session, "
+        "or set QT_QPA_PLATFORM=offscreen for a headless check"
+    )
+
+
 def plugin_path(platform: str = "xcb") -> Path | None:
     """PySide6's platform plugin ``libq<platform>.so``, found without importing Qt's GUI
     modules."""

@@ -262,6 +262,74 @@ def test_emergency_stop_disables_the_motor_and_latches(qtbot, window, rigs):
     assert w.start_button.isEnabled() and not w.release_button.isVisible()
 
 
+def test_abort_is_disabled_while_waiting_for_start(qtbot, window):
+    w = window
+    open_new(qtbot, w)
+    assert not w.abort_button.isEnabled()  # nothing runs yet
+    click(qtbot, w.start_button)
+    qtbot.waitUntil(lambda: w.trial_states()[1] == "running", timeout=5000)
+    assert w.abort_button.isEnabled()
+    qtbot.waitUntil(lambda: w.state_label.text() == "engine: waiting for start", timeout=15000)
+    assert not w.abort_button.isEnabled() and w.start_button.isEnabled()
+    w.close()
+
+
+def test_the_abort_message_goes_when_the_next_trial_starts(qtbot, window):
+    w = window
+    open_new(qtbot, w)
+    click(qtbot, w.start_button)
+    qtbot.waitUntil(lambda: w.live.total_received > 50, timeout=5000)
+    click(qtbot, w.abort_button)
+    qtbot.waitUntil(lambda: worker_finished(w), timeout=5000)
+    # Named as the list names it, not by the file's group name ("01_RT_fam_a1").
+    assert "trial 1 (RT, attempt 1) aborted" in w.alert_label.text(), w.alert_label.text()
+    shown = [lb.text() for lb in w.quality_labels.values()]
+    assert "trial 1 (RT, attempt 1): aborted" in shown
+    assert not any(re.search(r"_a\d|\{|\}", t) for t in shown), shown
+    click(qtbot, w.start_button)
+    qtbot.waitUntil(
+        lambda: any(isinstance(e, ev.TrialStarted) and e.attempt == 2 for e in w.events_seen),
+        timeout=5000,
+    )
+    assert w.alert_label.text() == ""
+    assert w.trial_states()[1] == "running"
+    w.close()
+
+
+def test_the_emergency_stop_shows_that_it_is_latched(qtbot, window):
+    w = window
+    open_new(qtbot, w)
+    b = w.estop_button
+
+    def colour() -> str:  # inside the border, left of the text
+        return b.grab().toImage().pixelColor(12, b.height() // 2).name()
+
+    ready = colour()
+    assert b.text() == "EMERGENCY STOP" and not b.isChecked()
+    click(qtbot, b)
+    assert w.controller.estop_latched
+    assert b.text() == "E-STOP LATCHED" and b.isChecked() and b.isEnabled()
+    assert colour() != ready
+    click(qtbot, b)  # pressed again: still latched, still shown so (a click does not untoggle)
+    assert b.isChecked() and b.text() == "E-STOP LATCHED"
+    click(qtbot, w.release_button)
+    assert b.text() == "EMERGENCY STOP" and not b.isChecked() and colour() == ready
+    w.close()
+
+
+def test_the_condition_order_is_counted_from_one(qtbot, window, short_protocol):
+    w = window
+    w.subject_spin.setValue(1)
+    assert "S01, condition order 1 of 6:" in w.order_label.text(), w.order_label.text()
+    w.subject_spin.setValue(8)  # row 1 of the Williams square: subjects 2, 8, 14, ...
+    assert "S08, condition order 2 of 6:" in w.order_label.text()
+    open_new(qtbot, w, subject=6)
+    text = w.order_label.text()
+    assert "S06, condition order 6 of 6:" in text and "row 5" not in text, text
+    assert " → ".join(build_plan(short_protocol, 6).condition_order) in text
+    w.close()
+
+
 def test_closing_the_window_mid_trial_aborts_and_keeps_the_data(qtbot, window):
     w = window
     open_new(qtbot, w)

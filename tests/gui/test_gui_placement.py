@@ -46,16 +46,45 @@ print(json.dumps(out))
 """
 
 
+# What a trial does to the experimenter window on a screen 1600 px wide: the quality check
+# fills in long values (an aborted trial, a loop with no timing figures), the alert line a
+# long message, and the window itself is widened (by its content, or by a window manager).
+GROW = r"""
+import math
+import numpy as np
+from steerlab.app.gui.quality import QualityCheck
+q = QualityCheck(key="02_RT_rep1_a1", condition="RT", status="aborted", n_planned=50751,
+                 n_received=37480, n_engine=37480, n_measured=30000, n_periods=2,
+                 band_frequencies_hz=np.geomspace(0.1, 20.0, 10), coherence=np.full(10, 0.9),
+                 angle_rms_deg=8.04, boundary_deg=math.inf, outside_boundary_percent=None,
+                 loop={"samples": 37480, "late_cycles_over_half_a_millisecond": 12345},
+                 warnings=("trial not complete", "median coherence 0.31 < 0.5"))
+w._show_quality(q)
+w._alert("trial 2 (RT, attempt 1) aborted: control loop stalled (no cycle for 1.2 s); "
+         "the samples up to the end are in the file")
+for _ in range(10): app.processEvents()
+out["filled"] = [rect(w.frameGeometry()), rect(w.dashboard.frameGeometry())]
+w.resize(1373, w.height())
+for _ in range(10): app.processEvents()
+out["widened"] = [rect(w.frameGeometry()), rect(w.dashboard.frameGeometry())]
+out["dash_screen_after"] = w.dashboard.screen().name()
+"""
+
+
 def screen(name: str, x: int, w: int, h: int) -> dict:
     return {"name": name, "x": x, "y": 0, "width": w, "height": h,
             "logicalDpi": 96, "logicalBaseDpi": 96, "dpr": 1}  # fmt: skip
 
 
-def placed(tmp_path, screens: list[dict]) -> dict:
+def placed(tmp_path, screens: list[dict], then: str = "") -> dict:
+    """The windows' rectangles after ``place_windows`` (and after the code ``then``, run
+    before the window closes with ``w``, ``app``, ``rect`` and ``out`` in scope)."""
     cfg = tmp_path / "screens.json"
     cfg.write_text(json.dumps({"screens": screens}))
     env = dict(os.environ, QT_QPA_PLATFORM=f"offscreen:configfile={cfg}")
-    r = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, env=env,
+    end = "w.close(); app.processEvents()"
+    script = SCRIPT.replace(end, f"{then}\n{end}")
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env,
                        timeout=300, check=False)  # fmt: skip
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -85,6 +114,35 @@ def test_second_screen_gets_the_dashboard(tmp_path):
     assert inside(out["dash"], out["screens"]["subject"])
     assert out["combo"].startswith("subject")  # the choice is shown under "Subject display"
     assert not overlaps(tuple(out["exp"]), tuple(out["dash"]))
+
+
+def test_one_1600_px_screen_the_dashboard_stays_clear_while_the_window_grows(tmp_path):
+    out = placed(tmp_path, [screen("lab", 0, 1600, 1000)], then=GROW)
+    s = out["screens"]["lab"]
+    exp, dash = out["exp"], out["dash"]
+    assert not overlaps(tuple(exp), tuple(dash)) and inside(dash, s)
+    assert exp[2] == 1600 - 8 - MIN_DASHBOARD_WIDTH
+    # Long quality values and alerts wrap: the window keeps its width.
+    filled_exp, filled_dash = out["filled"]
+    assert filled_exp == exp and filled_dash == dash
+    # Widened anyway: the two are put side by side again, the dashboard on the screen.
+    wide_exp, wide_dash = out["widened"]
+    assert not overlaps(tuple(wide_exp), tuple(wide_dash)), out["widened"]
+    assert inside(wide_exp, s) and inside(wide_dash, s)
+    assert wide_dash[2] >= MIN_DASHBOARD_WIDTH
+
+
+def test_two_screens_the_dashboard_stays_on_the_second_and_each_window_fits(tmp_path):
+    # The experimenter's screen narrower than the window's default size (1400 px).
+    out = placed(tmp_path, [screen("experimenter", 0, 1280, 800),
+                            screen("subject", 1280, 1600, 1000)], then=GROW)  # fmt: skip
+    assert out["exp_screen"] == "experimenter" and out["dash_screen"] == "subject"
+    assert inside(out["exp"], out["screens"]["experimenter"]), out["exp"]
+    assert inside(out["dash"], out["screens"]["subject"])
+    for exp, dash in (out["filled"], out["widened"]):
+        assert not overlaps(tuple(exp), tuple(dash))
+        assert inside(dash, out["screens"]["subject"])
+    assert out["dash_screen_after"] == "subject"
 
 
 def test_small_screen_never_covers_the_stop_button(qtbot, tmp_path):

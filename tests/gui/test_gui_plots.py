@@ -3,6 +3,10 @@ rate in the status bar, NaN channels as gaps; and the check of Qt's X11 librarie
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -20,6 +24,7 @@ from steerlab.app.gui.system_libs import (
 )
 from steerlab.protocols import events as ev
 from steerlab.protocols.protocol import load_protocol
+from tests.helpers import ROOT
 
 
 def feed(live: LiveData, seconds: float, fs: float = 1000.0, left_share: float = 0.5) -> None:
@@ -109,6 +114,41 @@ def test_a_channel_the_rig_does_not_send_is_a_gap_not_a_crash(qtbot):
     x, y = p.curves["grip_force_left_N"].getData()
     assert np.isnan(y).all()
     assert p.ranges[3].hi > 1.0  # the range follows the channel that is there
+
+
+def test_flat_traces_keep_a_readable_scale_and_the_unit_labels_apart(qtbot):
+    # After an abort, or before the perturbation fades in, every trace is flat: the y ranges
+    # must not close in on rounding noise, and no SI factor ("N·m (x1e-12)") may join a unit
+    # label and run into the next plot's.
+    live = LiveData()
+    p = LivePlots(live)
+    qtbot.addWidget(p)
+    p.resize(900, 520)
+    p.show()
+    p.set_boundary(0.0)  # PT: the lines on the centre hold nothing open
+    for r in p.ranges:
+        r.hold_s = 0.0  # shrink at once, as 3 s of flat data would
+    live(ev.TrialStarted("k", 1, 1, "PT", {"fs_hz": 100.0}, 1000))
+    channels = ("perturbation_torque_Nm", "driver_torque_Nm", "wheel_angle_rad",
+                "grip_force_left_N", "grip_force_right_N")  # fmt: skip
+    for start in (0, 300):
+        t = (start + np.arange(300)) / 100.0
+        block = {"time_s": t, "grip_force_N": np.full(300, 40.0)}
+        block |= {c: np.zeros(300) for c in channels}
+        live(ev.SamplesAcquired("k", start, block))
+        p.refresh()
+    qtbot.wait(50)
+    labels = []
+    for plot in p.plots:
+        lo, hi = plot.getViewBox().viewRange()[1]
+        assert hi - lo >= 1.0, (plot.titleLabel.text, lo, hi)
+        axis = plot.getAxis("left")
+        text = axis.label.toPlainText()
+        assert "(x" not in text and "e-" not in text, text
+        labels.append(axis.label.sceneBoundingRect())
+    for i, a in enumerate(labels):
+        for b in labels[i + 1 :]:
+            assert not a.intersects(b), (a, b)
 
 
 def test_frame_rate_in_the_status_bar(qtbot, tmp_path):
@@ -225,3 +265,26 @@ def test_the_check_runs_before_any_qt_gui_module_is_loaded():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout.strip().splitlines()[-1]) == []
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Qt's X11 default: Linux")
+def test_no_display_is_one_line_and_exit_code_2_before_qt_starts(tmp_path):
+    # Without the check Qt aborts the interpreter (status 134) with a hint about
+    # libxcb-cursor0, which is installed.
+    unset = ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM")
+    env = {k: v for k, v in os.environ.items() if k not in unset}
+    r = subprocess.run([sys.executable, "-m", "steerlab", "gui", "--out", str(tmp_path / "d")],
+                       cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip() == (
+        "steerlab gui: no display (DISPLAY and WAYLAND_DISPLAY are unset); run it on a desktop "
+        "session, or set QT_QPA_PLATFORM=offscreen for a headless check"
+    )
+    from steerlab.app.gui.system_libs import no_display
+
+    assert no_display({}, "linux") is not None
+    assert no_display({"QT_QPA_PLATFORM": "xcb"}, "linux") is not None
+    assert no_display({"DISPLAY": ":0"}, "linux") is None
+    assert no_display({"WAYLAND_DISPLAY": "wayland-0"}, "linux") is None
+    assert no_display({"QT_QPA_PLATFORM": "offscreen"}, "linux") is None
+    assert no_display({}, "darwin") is None
