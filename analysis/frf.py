@@ -476,7 +476,10 @@ class GroupFrequencyResponse:
     """Mean over subjects of their complex Ĥ, with confidence intervals per band.
 
     ``H`` is the plain complex mean (the average of the per-subject Fourier-coefficient
-    estimates, what the group fit uses). Intervals, all Student-t with n−1 degrees of freedom:
+    estimates, the paper's group estimate, what the paper weighting fits); ``H_compensated`` the
+    mean of the subjects' compensated Ĥ (:class:`FrequencyResponse`), what the default
+    (inverse-variance) group fit compares the model with, as every subject's fit does.
+    Intervals, all Student-t with n−1 degrees of freedom:
 
     - ``real_ci``/``imag_ci``: on the real and imaginary parts: the interval of the complex
       mean itself, per coefficient.
@@ -507,11 +510,16 @@ class GroupFrequencyResponse:
     # the bins of each band, to first order.
     bin_frequencies_hz: np.ndarray
     bin_weights: np.ndarray
-    # H_variance smoothed across frequency (smooth_log_spectrum, 2(n−1) degrees of freedom);
-    # with one subject, that subject's own smoothed noise variance.
+    # The spread between subjects of the estimate the default fit compares with (the
+    # compensated Ĥ where every subject has one), smoothed across frequency
+    # (smooth_log_spectrum, 2(n−1) degrees of freedom); with one subject, that subject's own
+    # smoothed noise variance.
     H_variance_smooth: np.ndarray | None = None
     fs_hz: float | None = None  # the subjects' common sample rate (None if they differ)
     H_variance_log_cov: np.ndarray | None = None  # as in FrequencyResponse
+    # Mean of the subjects' compensated Ĥ (theirs where they have none); None only when no
+    # subject has one (hand-built responses).
+    H_compensated: np.ndarray | None = None
 
     @property
     def magnitude(self) -> np.ndarray:
@@ -579,13 +587,21 @@ def group_frequency_response(
     H_var = (
         np.sum(np.abs(Hs - H) ** 2, axis=0) / (n * (n - 1)) if n > 1 else np.full(H.shape, np.nan)
     )
+    # The subjects' compensated Ĥ: the default group fit then compares the model with the same
+    # estimate as the subjects' own fits, whose parameters it is read against.
+    comp = [r.H_compensated for r in responses]
+    have_comp = any(c is not None for c in comp)
+    Hcs = np.array([r.H if c is None else c for r, c in zip(responses, comp, strict=True)])
+    H_comp = Hcs.mean(axis=0) if have_comp else None
     # One subject: no spread between subjects, but that subject's own noise still says how well
     # each band is known (what the fit's weights and SEMs need).
     var_smooth: np.ndarray | None
     var_log_cov: np.ndarray | None
     if n > 1:
+        # The fit's noise model: the spread of what it fits (the compensated Ĥ by default).
+        H_var_fit = np.sum(np.abs(Hcs - Hcs.mean(axis=0)) ** 2, axis=0) / (n * (n - 1))
         var_smooth, var_log_cov = smooth_log_spectrum_with_covariance(
-            f0.frequencies_hz, H_var, 2.0 * (n - 1)
+            f0.frequencies_hz, H_var_fit, 2.0 * (n - 1)
         )
     else:
         var_smooth, var_log_cov = f0.H_variance_smooth, f0.H_variance_log_cov
@@ -607,4 +623,5 @@ def group_frequency_response(
         H_variance_smooth=var_smooth,
         fs_hz=_common_rate([r.fs_hz for r in responses]),
         H_variance_log_cov=var_log_cov,
+        H_compensated=H_comp,
     )

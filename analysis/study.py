@@ -13,9 +13,10 @@
    The arm fits are one joint fit per subject (one task per subject on the same executor, or
    on a ``ProcessPoolExecutor(jobs)``); the comparison weighting starts from the default's
    solution.
-4. Per condition: group FRF (complex mean over subjects, 95 % intervals) and the arm fit to it;
-   grip force over subjects, including the median of the subjects' means (the LPV model's
-   scheduling variable).
+4. Per condition: group FRF (complex mean over subjects, 95 % intervals) and the arm fit to it,
+   with the subjects' estimator (their compensated Ĥ averaged, the same weighting and sampling)
+   and I_i held at the median of the subjects' I_i (:func:`group_inertia`); grip force over
+   subjects, including the median of the subjects' means (the LPV model's scheduling variable).
 
 Keys in :meth:`StudyAnalysis.to_dict` carry their units; NaN and infinities become ``null``.
 """
@@ -319,8 +320,8 @@ class StudyAnalysis:
     skipped: tuple[SkippedTrial, ...]
     options: AnalysisOptions
     notes: tuple[str, ...] = ()
-    # The inertia of each subject's joint fit (and "group" for the conditions' group fits);
-    # empty when I_i is held fixed or fitted per cell.
+    # The inertia of each subject's joint fit; empty when I_i is held fixed or fitted per cell.
+    # "group" only when no subject's I_i was determined and the group fits estimated their own.
     inertia: dict[str, JointArmFit] = field(default_factory=dict)
     inertia_compare: dict[str, JointArmFit] = field(default_factory=dict)
 
@@ -571,13 +572,34 @@ def analyze_study(
             )
         except ValueError as e:
             notes.append(f"{cond}: no group result: {e}")
-    group_sets = {"group": list(groups.items())} if groups else {}
-    gfits, ginertia = _fit_sets(group_sets, opt.fit, notes)
-    inertia.update(ginertia)
+    gfits: dict[tuple[str, str], ArmFit | str] = {}
     gfits_cmp: dict[tuple[str, str], ArmFit | str] = {}
-    if opt.compare_weightings:
-        gfits_cmp, ginertia_cmp = _fit_sets(group_sets, opt.comparison_fit, [], starts=ginertia)
-        inertia_cmp.update(ginertia_cmp)
+    held = {c: group_inertia(per_cell, c, opt.fit) for c in groups}
+    own = [(c, g) for c, g in groups.items() if held[c] is None]
+    if own:
+        if opt.fit.inertia != "fixed":
+            notes.append(
+                f"{', '.join(c for c, _ in own)}: no subject's I_i is determined; the group "
+                "fit estimates its own from the mean FRF"
+            )
+        got_sets, ginertia = _fit_sets({"group": own}, opt.fit, notes)
+        gfits.update(got_sets)
+        inertia.update(ginertia)
+        if opt.compare_weightings:
+            got_sets, ginertia_cmp = _fit_sets(
+                {"group": own}, opt.comparison_fit, [], starts=ginertia
+            )
+            gfits_cmp.update(got_sets)
+            inertia_cmp.update(ginertia_cmp)
+    for c, g in groups.items():
+        I_c = held[c]
+        if I_c is None:
+            continue
+        fopt = replace(opt.fit, inertia="fixed", I_i=I_c)
+        gfits.update(_fit_sets({"group": [(c, g)]}, fopt, notes)[0])
+        if opt.compare_weightings:
+            cmp_opt = replace(opt.comparison_fit, inertia="fixed", I_i=I_c)
+            gfits_cmp.update(_fit_sets({"group": [(c, g)]}, cmp_opt, [])[0])
     per_condition: list[ConditionResult] = []
     for cond, group in groups.items():
         rs = [r for r in per_cell if r.condition == cond]
@@ -607,6 +629,31 @@ def analyze_study(
         inertia=inertia,
         inertia_compare=inertia_cmp,
     )
+
+
+def group_inertia(
+    cells: Sequence[SubjectConditionResult], condition: str, fopt: FitOptions
+) -> float | None:
+    """The I_i a condition's group fit holds: the median of the subjects' I_i in that condition
+    (their joint fits' shared value by default), leaving out those the data do not determine.
+    None with ``inertia="fixed"`` (every fit holds ``fopt.I_i`` already) or when no subject's
+    I_i is determined.
+
+    The mean of the subjects' responses is not an arm's response (averaging 1/(b_c s + k_c)
+    over subjects is not one spring-damper), and a group fit that estimates I_i from it puts
+    part of that mismatch into I_i: on a simulated study whose subjects all have I_i = 0.1
+    kg·m², fitted to the mean of their noise-free responses, 0.097 (docs/method-estimator.md).
+    The arm's inertia is a property of the person, which every subject's joint fit determines
+    to about 1 %; their median is the group's.
+    """
+    if fopt.inertia == "fixed":
+        return None
+    vals = [
+        r.fit.params.I_i
+        for r in cells
+        if r.condition == condition and r.fit is not None and "I_i" not in r.fit.unidentified()
+    ]
+    return float(np.median(vals)) if vals else None
 
 
 def _fit_set(
