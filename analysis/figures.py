@@ -24,6 +24,7 @@ from steerlab.analysis.armfit import arm_admittance
 from steerlab.analysis.lpv import admittance_response
 from steerlab.analysis.periods import PeriodSelection
 from steerlab.analysis.pipeline import PARAMETER_UNITS, StudyResults, leave_one_out_models
+from steerlab.analysis.report import method_name
 from steerlab.protocols.records import TrialRecord
 
 DPI = 96
@@ -50,6 +51,18 @@ def condition_colours(conditions: Sequence[str]) -> dict[str, tuple]:
     n = max(len(conditions) - 1, 1)
     # Stop short of viridis' pale yellow end, which vanishes on white.
     return {c: cmap(0.85 * i / n) for i, c in enumerate(conditions)}
+
+
+def symbol(name: str) -> str:
+    """A parameter name as mathtext: "k_i" → $k_i$ (subscript, not an underscore)."""
+    return f"${name}$" if "_" in name else name
+
+
+def points_in_condition_order(res: StudyResults) -> list:
+    """The operating points in the protocol's condition order (the results keep them by μ),
+    so that legends list the conditions as every table does."""
+    rank = {c: i for i, c in enumerate(res.conditions)}
+    return sorted(res.points, key=lambda p: rank.get(p.condition, len(rank)))
 
 
 def _fine_grid(f: np.ndarray) -> np.ndarray:
@@ -239,7 +252,7 @@ def parameter_boxplots(res: StudyResults) -> Figure:
                 ax.plot([i], [top], "x", color="red", ms=7, clip_on=False, zorder=5)
                 ax.annotate(f"{n}", (i, top), xytext=(4, -10), textcoords="offset points",
                             color="red", fontsize=7)  # fmt: skip
-        ax.set_title(f"{name} ({PARAMETER_UNITS[name]})")
+        ax.set_title(f"{symbol(name)} ({PARAMETER_UNITS[name]})")
         ax.grid(axis="y", which="both", alpha=0.25)
     axes[0].legend(fontsize=8, loc="upper left")
     _inertia_panel(axes[len(FREE_PARAMETERS)], res)
@@ -265,12 +278,17 @@ def _inertia_panel(ax, res: StudyResults) -> None:
     s = np.array([fits[n].I_i_sem if fits[n].I_i_sem is not None else np.nan for n in names])
     x = np.arange(1, len(names) + 1)
     ax.errorbar(x, v, yerr=s, fmt="o", ms=4, color="0.2", capsize=2)
+    # The group fits hold the subjects' median (a free group I_i where none is determined).
     g = res.study.inertia.get("group")
+    held = [c.fit.params.I_i for c in res.study.conditions if c.fit is not None]
     if g is not None:
         ax.axhline(g.I_i, color="black", lw=1, ls="--", label=f"group fit {g.I_i:.3g}")
+    elif held:
+        ax.axhline(held[0], color="black", lw=1, ls="--", label=f"group fits hold {held[0]:.3g}")
+    if g is not None or held:
         ax.legend(fontsize=8, loc="upper left")
     ax.set_xticks(x, names, rotation=90, fontsize=7)
-    ax.set_title("I_i (kg·m²), one per subject ± SEM")
+    ax.set_title(f"{symbol('I_i')} (kg·m²), one per subject ± SEM")
     ax.grid(axis="y", alpha=0.25)
 
 
@@ -346,7 +364,7 @@ def lpv_parameters(res: StudyResults) -> Figure | None:
             color="0.3",
             label=f"physical LPV, order {res.lpv.table.order}",
         )
-        for p in res.points:
+        for p in points_in_condition_order(res):
             fit = fits.get(p.condition)
             sem = fit.sems.get(name, np.nan) if fit is not None else np.nan
             included = p.condition not in res.lpv.excluded
@@ -361,7 +379,7 @@ def lpv_parameters(res: StudyResults) -> Figure | None:
                 mfc=colours[p.condition] if included else "none",
                 label=p.condition + ("" if included else " (not in LPV)"),
             )
-        ax.set_title(f"{name} ({PARAMETER_UNITS[name]})")
+        ax.set_title(f"{symbol(name)} ({PARAMETER_UNITS[name]})")
         ax.set_xlabel("μ: median of subjects' mean grip force (N)")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7, ncol=2)
@@ -377,7 +395,7 @@ def lpv_responses(res: StudyResults) -> Figure | None:
     fig = new_figure(10, 6.5)
     ax_m, ax_p = fig.subplots(2, 1, sharex=True, height_ratios=[3, 2])
     styles = {"physical": "-", "de_caigny": "--"}
-    for p in res.points:
+    for p in points_in_condition_order(res):
         if p.condition in res.lpv.excluded or p.frf is None:
             continue
         col = colours[p.condition]
@@ -410,7 +428,10 @@ def leave_one_out(res: StudyResults) -> Figure | None:
     if res.lpv is None or res.lpv.leave_one_out is None:
         return None
     folds = leave_one_out_models(res.lpv, res.points, order=res.lpv.table.order)
-    left_out = list(dict.fromkeys(p.condition for p, _, _ in folds))
+    rank = {c: i for i, c in enumerate(res.conditions)}
+    left_out = sorted(
+        dict.fromkeys(p.condition for p, _, _ in folds), key=lambda c: rank.get(c, len(rank))
+    )
     if not left_out:
         return None
     loo = res.lpv.leave_one_out
@@ -437,12 +458,14 @@ def leave_one_out(res: StudyResults) -> Figure | None:
                 continue
             ls, col = styles.get(m, (":", "k"))
             hm = model.frequency_response(p.mu_N, ff)
-            ax_m.plot(ff, np.abs(hm), ls, lw=1.3, color=col, label=f"{m}, {cond} left out")
+            ax_m.plot(
+                ff, np.abs(hm), ls, lw=1.3, color=col, label=f"{method_name(m)}, {cond} left out"
+            )
             ax_p.plot(ff, np.degrees(np.unwrap(np.angle(hm))), ls, lw=1.3, color=col)
             r = loo.get(m, cond)
             fit = r.fit_vs_measured_percent
             v = vaf.get((m, cond))
-            lines.append(f"{m}: FIT {_fmt(fit, 1)} %, VAF {_fmt(v, 1)} %")
+            lines.append(f"{method_name(m)}: FIT {_fmt(fit, 1)} %, VAF {_fmt(v, 1)} %")
         ax_m.set_title(f"{cond} left out (μ = {p.mu_N:.0f} N)\n" + "\n".join(lines), fontsize=9)
         ax_m.set_xscale("log")
         ax_m.set_yscale("log")

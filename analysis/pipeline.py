@@ -18,7 +18,8 @@ Stages
     3. Statistics over the conditions for every per-subject quantity (grip mean and SD, b_i,
        k_i, b_c, k_c, VAF): RM-ANOVA with sphericity and GG correction, Bonferroni pairwise
        tests, and Page's trend test for an ordered effect (conditions ordered from the widest
-       boundary, RT, to the narrowest, PT). I_i is held fixed in every fit and is not tested.
+       boundary, RT, to the narrowest, PT). I_i (one per subject, shared by its conditions;
+       the group fits hold the subjects' median) is not tested.
     4. The paper's qualitative findings, each restated as a test on these data (:class:`Check`).
 """
 
@@ -28,6 +29,7 @@ import concurrent.futures as cf
 import math
 import platform
 import time
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -1004,6 +1006,15 @@ def statistics_table(study: StudyAnalysis) -> tuple[pd.DataFrame, list[str]]:
     return pd.DataFrame(rows), left_out
 
 
+@dataclass(frozen=True)
+class ReaderWarning:
+    """One item of the report's "Read this first" box: ``text`` in words; ``section`` the
+    report section that holds the detail ("" for none)."""
+
+    text: str
+    section: str = ""
+
+
 @dataclass
 class StudyResults:
     """Everything a report shows; :meth:`to_dict` is ``results.json`` (docs/results.md)."""
@@ -1104,16 +1115,63 @@ class StudyResults:
             "cells": rows,
         }
 
-    def warnings(self) -> list[str]:
-        """What a reader must know before trusting the numbers (shown at the top)."""
-        out = []
+    def reader_warnings(self) -> list[ReaderWarning]:
+        """What a reader must know before trusting the numbers, each in a sentence or two.
+
+        Long lists (which subject fits, which estimates) stay in the sections named by
+        ``section``: a reader acts on a count and a place to look, not on forty names.
+        """
+        out: list[ReaderWarning] = []
         if self.simulated:
-            out.append("This study is SIMULATED (Steerlab's simulated rig), not measured data.")
-        if self.left_out_of_statistics:
             out.append(
-                f"{len(self.left_out_of_statistics)} estimate(s) the data do not determine "
-                f"(at a search bound, or SEM ≥ value): {'; '.join(self.left_out_of_statistics)}."
-                f" Rule: {UNIDENTIFIED_RULE}."
+                ReaderWarning(
+                    "This study is SIMULATED (Steerlab's simulated rig), not measured data."
+                )
+            )
+        if self.lpv is None:
+            pts = ", ".join(p.condition for p in self.points) or "none"
+            out.append(
+                ReaderWarning(
+                    "The LPV model could not be built, so there is no Table 2, no "
+                    "leave-one-out verification and no LPV check. Why: "
+                    f"{self.lpv_error or 'no operating points'}. Operating points in this "
+                    f"study (one per analysed condition): {pts}.",
+                    "table2",
+                )
+            )
+        elif self.lpv.leave_one_out is None:
+            out.append(
+                ReaderWarning(
+                    "The leave-one-out verification of the LPV model was not computed: "
+                    f"{self.lpv.leave_one_out_skipped}.",
+                    "loo",
+                )
+            )
+        errors = {e for q in self.statistics.values() if q.anova is None for e in q.errors}
+        if errors and all(q.anova is None for q in self.statistics.values()):
+            out.append(
+                ReaderWarning(
+                    "No statistics across the conditions could be run: "
+                    f"{'; '.join(sorted(errors))}.",
+                    "anova",
+                )
+            )
+        n_na = sum(c.passed is None for c in self.checks)
+        if n_na:
+            out.append(
+                ReaderWarning(
+                    f"{n_na} of the paper's {len(self.checks)} findings could not be checked on "
+                    "these data (each row says why).",
+                    "checks",
+                )
+            )
+        if self.study.notes:
+            out.append(
+                ReaderWarning(
+                    f"{len(self.study.notes)} subject × condition cell(s) or condition(s) were "
+                    "left out of the analysis.",
+                    "notes",
+                )
             )
         groups_bad = [
             f"{c.condition}: {', '.join(c.fit.unidentified())}"
@@ -1121,28 +1179,57 @@ class StudyResults:
             if c.fit is not None and c.fit.unidentified()
         ]
         if groups_bad:
-            out.append("group fits the data do not determine: " + "; ".join(groups_bad))
+            out.append(
+                ReaderWarning(
+                    "Group fits the data do not determine: " + "; ".join(groups_bad) + ".",
+                    "conditions",
+                )
+            )
+        if self.left_out_of_statistics:
+            out.append(
+                ReaderWarning(
+                    f"{len(self.left_out_of_statistics)} subject estimate(s) the data do not "
+                    "determine (at a search bound, or SEM ≥ value) are left out of the "
+                    "statistics and the boxes.",
+                    "notes",
+                )
+            )
         inert = self.inertia_dict()
         poor = [v["fit"] for v in inert["fits"] if v["poorly_determined"]]
         if poor:
+            n_subj = sum(1 for v in inert["fits"] if v["fit"] != "group")
+            n_poor = sum(1 for f in poor if f != "group")
+            who = f"{n_poor} of {n_subj} subjects" + (
+                " and the group fits" if "group" in poor else ""
+            )
             out.append(
-                f"I_i is poorly determined (SEM > {INERTIA_POORLY_DETERMINED:.0%} of the "
-                f"value) for: {', '.join(poor)}; see the inertia section for how much the "
-                "other parameters depend on it."
+                ReaderWarning(
+                    f"I_i is poorly determined (SEM > {INERTIA_POORLY_DETERMINED:.0%} of the "
+                    f"value) for {who}; the inertia section shows how much the other "
+                    "parameters depend on it.",
+                    "inertia",
+                )
             )
         if self.study.options.compare_weightings:
-            dis = [
-                f"{r['subject']} {r['condition']}: {', '.join(r['disagree'])}"
-                for r in self.weighting_comparison()["cells"]
-                if r["disagree"]
-            ]
+            wc = self.weighting_comparison()
+            subj = [r for r in wc["cells"] if r["subject"] != "group"]
+            dis = [r for r in subj if r["disagree"]]
             if dis:
+                names = Counter(n for r in dis for n in r["disagree"])
+                most = ", ".join(f"{n} {k}×" for n, k in names.most_common())
                 out.append(
-                    f"{len(dis)} fit(s) where the two weightings disagree by more than "
-                    f"{WEIGHTING_DISAGREEMENT_SEMS:g} SEMs: {'; '.join(dis[:12])}"
-                    + (" …" if len(dis) > 12 else "")
+                    ReaderWarning(
+                        f"{len(dis)} of {len(subj)} subject fits change by more than "
+                        f"{WEIGHTING_DISAGREEMENT_SEMS:g} SEMs with the other weighting "
+                        f"({most}).",
+                        "weighting",
+                    )
                 )
         return out
+
+    def warnings(self) -> list[str]:
+        """What a reader must know before trusting the numbers (shown at the top)."""
+        return [w.text for w in self.reader_warnings()]
 
     @property
     def leave_one_out(self) -> LeaveOneOutReport | None:
@@ -1389,6 +1476,7 @@ __all__ = [
     "InputFile",
     "LeaveOneOutVAF",
     "QuantityStatistics",
+    "ReaderWarning",
     "StudyResults",
     "TrendTest",
     "analyse_directory",

@@ -21,6 +21,7 @@ import csv
 import html
 import json
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -113,7 +114,7 @@ def _timing_line(t: dict) -> str:
         f'<p class="muted">Recording timing ({how}): the angle was read '
         f"{when(t['theta_offset_samples'])}, the torque {when(t['torque_offset_samples'])}; "
         "both were moved to the command's instant before the analysis."
-        + "".join(f" {_e(n)}." for n in t.get("notes", []))
+        + "".join(f" {_prose(n)}." for n in t.get("notes", []))
         + "</p>"
     )
 
@@ -393,31 +394,125 @@ def render_figures(
 # index.html
 
 _CSS = """
-body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;max-width:1100px;
-margin:1.5em auto;padding:0 1em;color:#222;line-height:1.45}
-h1{font-size:1.6em;margin-bottom:.2em}h2{border-bottom:2px solid #ddd;padding-bottom:.2em;
-margin-top:1.8em}h3{margin-bottom:.3em}
-table{border-collapse:collapse;margin:.6em 0;font-size:.9em}
-th,td{border:1px solid #ccc;padding:.25em .5em;text-align:right;vertical-align:top}
+body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;max-width:1200px;
+margin:.8em auto;padding:0 1em;color:#222;line-height:1.4}
+h1{font-size:1.4em;margin:.2em 0}h2{border-bottom:2px solid #ddd;padding-bottom:.15em;
+margin:1.4em 0 .4em;font-size:1.25em}h3{margin-bottom:.3em}
+#conditions,#checks{margin-top:.6em}
+table{border-collapse:collapse;margin:.4em 0;font-size:.9em}
+th,td{border:1px solid #ccc;padding:.2em .45em;text-align:right;vertical-align:top}
 th{background:#f3f3f3}td.l,th.l{text-align:left}
+table.compact td{padding:.1em .45em}
 .pass{background:#dff3df;color:#135e13;font-weight:600}
 .differs{background:#fbe3d6;color:#8a3300;font-weight:600}
 .na{background:#eee;color:#555}
-.sig{font-weight:700}.muted{color:#777}
+.sig{font-weight:700}.muted{color:#777}.spread{color:#555;font-size:.85em}
 figure{margin:1em 0}figure img{max-width:100%;border:1px solid #eee}
 figcaption{font-size:.9em;color:#444}
 .small{font-size:.85em}code{background:#f5f5f5;padding:0 .2em}
-.warn{background:#fff4d6;border:1px solid #e0b040;padding:.4em 1em;margin:1em 0}
+.warn{background:#fff4d6;border:1px solid #e0b040;padding:.2em .8em;margin:.5em 0;
+font-size:.92em}.warn ul{margin:.2em 0;padding-left:1.2em}
 .bad{color:#b00020;font-weight:600}
+p{margin:.35em 0}
 """
+
+# How the page names what the results name for programs.
+METHOD_NAMES = {"de_caigny": "de Caigny", "physical": "physical parameters"}
+WEIGHTING_NAMES = {
+    "inverse_variance": "inverse variance (maximum likelihood)",
+    "paper": "the paper's coherence × 1/f",
+}
+STRUCTURE_NAMES = {
+    "split": "one real zero in each block",
+    "second_order": "both zeros in the second-order block",
+}
+TIMING_NAMES = {
+    "read_files": "reading the files",
+    "trials_subjects_conditions": "trials, subjects and conditions",
+    "lpv": "LPV model",
+    "statistics": "statistics",
+    "tracking": "tracking",
+    "driving": "driving",
+    "write_data": "writing the data",
+    "figures": "figures",
+    "write_html": "writing the page",
+    "total": "total",
+}
+# Labels of the numbers a check rests on (Check.values keys).
+VALUE_LABELS = {
+    "L": "Page's L",
+    "p": "p",
+    "mean_spearman_rho": "mean Spearman ρ",
+    "n_subjects": "subjects",
+    "condition_means": "condition means",
+    "pairs_not_significant": "pairs not significant",
+    "n_pairs_tested": "pairs tested",
+    "mean_difference_N": "mean difference (N)",
+    "t": "t",
+    "df": "df",
+    "p_bonferroni": "Bonferroni p",
+    "group_low_f_admittance_rad_per_Nm": "group mean |Ĥ| up to 0.7 Hz (rad/N·m)",
+    "F": "F",
+    "df1": "df1",
+    "df2": "df2",
+    "p_gg": "p (Greenhouse–Geisser)",
+    "eps_gg": "ε (Greenhouse–Geisser)",
+    "partial_eta_squared": "partial η²",
+    "median_relative_sem": "median SEM / estimate",
+    "condition_means_percent": "mean VAF (%)",
+    "not_significantly_lower_than": "RT not significantly lower than",
+    "lti_fit_percent": "LTI FIT%",
+    "lpv_fit_percent": "LPV FIT%",
+}
+# Long words for the identifiers that other modules put into their sentences.
+_IDENTIFIERS = {
+    **METHOD_NAMES,
+    "inverse_variance": WEIGHTING_NAMES["inverse_variance"],
+    "second_order": "second-order",
+    "trial_cv": "trial spread",
+}
+_LIST_REPR = re.compile(r"\[((?:'[^'\[\]]*'(?:, )?)+)\]")
+_QUOTED = re.compile(r"(?<![\w'])'([^'\n]+?)'(?![\w])")
+_ROW_REF = re.compile(r"\b([kb]_[ic])_(rises|changes)\b")
+_SYMBOL = re.compile(r"\b([A-Za-z])_(i|c|gg|GG)\b")
+_SUPERSCRIPT = str.maketrans("0123456789-", "⁰¹²³⁴⁵⁶⁷⁸⁹⁻")
 
 
 def _e(x: Any) -> str:
     return html.escape(str(x))
 
 
+def _prose(text: Any) -> str:
+    """Plain text from the analysis as HTML a reader can read: Python list reprs become
+    comma-separated words, identifiers their names, quotes typographic, and parameter
+    names get their subscripts (k_i → k<sub>i</sub>)."""
+    s = str(text)
+    s = _LIST_REPR.sub(lambda m: ", ".join(re.findall(r"'([^']*)'", m.group(1))), s)
+    s = _ROW_REF.sub(lambda m: f"“{m.group(1)} {m.group(2)}”", s)
+    for ident, name in _IDENTIFIERS.items():
+        s = re.sub(rf"\b{ident}\b", name, s)
+    s = _QUOTED.sub(r"‘\1’", s)
+    s = html.escape(s, quote=False)
+    return _SYMBOL.sub(r"\1<sub>\2</sub>", s)
+
+
+def _sym(name: str) -> str:
+    """A parameter name with its subscript: "k_i" → k<sub>i</sub>."""
+    return _prose(name)
+
+
+def method_name(method: str) -> str:
+    return METHOD_NAMES.get(method, method.replace("_", " "))
+
+
+def _sci(x: float, sig: int) -> str:
+    mantissa, exp = f"{x:.{sig - 1}e}".split("e")
+    return f"{mantissa} × 10{str(int(exp)).translate(_SUPERSCRIPT)}"
+
+
 def _num(v: Any, sig: int = 3) -> str:
-    """``sig`` significant digits, fixed-point between 1e-3 and 1e5, trailing zeros kept."""
+    """``sig`` significant digits, fixed-point between 1e-4 and 1e6 (powers of ten written
+    as such outside), trailing zeros kept."""
     if v is None:
         return "–"
     if isinstance(v, int | np.integer) and not isinstance(v, bool):
@@ -430,10 +525,27 @@ def _num(v: Any, sig: int = 3) -> str:
         return "–"
     if x == 0:
         return "0"
-    if abs(x) >= 1e5 or abs(x) < 1e-3:
-        return f"{x:.{sig - 1}e}"
+    if abs(x) >= 1e6 or abs(x) < 1e-4:
+        return _sci(x, sig)
     decimals = max(sig - 1 - int(np.floor(np.log10(abs(x)))), 0)
     return f"{x:.{decimals}f}"
+
+
+def _pm(v: Any, sem: Any) -> str:
+    """Value ± SEM, both to the decimals the SEM supports (one significant digit of the
+    SEM, two when it starts with 1 or 2): 0.0999 ± 0.0007, 54.2 ± 1.4, 232 ± 7."""
+    if v is None or not np.isfinite(float(v)):
+        return "–"
+    x = float(v)
+    s = None if sem is None else float(sem)
+    if s is None or not np.isfinite(s) or s <= 0:
+        return f"{_num(x)} ± –"
+    e = int(np.floor(np.log10(s)))
+    digits = 2 if s / 10.0**e < 3 else 1
+    d = max(digits - 1 - e, 0)
+    if abs(x) >= 1e6 or d > 8:
+        return f"{_num(x)} ± {_num(s, digits)}"
+    return f"{x:.{d}f} ± {s:.{d}f}"
 
 
 def _fixed(v: Any, decimals: int) -> str:
@@ -447,10 +559,18 @@ def _fixed(v: Any, decimals: int) -> str:
 def _p(p: float | None) -> str:
     if p is None or not np.isfinite(p):
         return "–"
-    return f"{p:.1e}" if p < 0.001 else f"{p:.3f}"
+    if p <= 0:
+        return "0"
+    return _sci(p, 2) if p < 0.001 else f"{p:.3f}"
 
 
-def _table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 1) -> str:
+def _seconds(s: float) -> str:
+    return f"{s:.0f} s" if s >= 10 else (f"{s:.1f} s" if s >= 0.1 else "< 0.1 s")
+
+
+def _table(
+    header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 1, cls: str = ""
+) -> str:
     """Cells are HTML already; the first ``left`` columns are left-aligned."""
     th = "".join(f'<th class="{"l" if i < left else ""}">{h}</th>' for i, h in enumerate(header))
     body = "".join(
@@ -459,7 +579,8 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 1) 
         + "</tr>"
         for r in rows
     )
-    return f"<table><thead><tr>{th}</tr></thead><tbody>{body}</tbody></table>"
+    c = f' class="{cls}"' if cls else ""
+    return f"<table{c}><thead><tr>{th}</tr></thead><tbody>{body}</tbody></table>"
 
 
 def _figure(images: dict[str, str | None], name: str, caption: str) -> str:
@@ -472,6 +593,87 @@ def _figure(images: dict[str, str | None], name: str, caption: str) -> str:
     )
 
 
+def _in_order(keys: Sequence[str], conditions: Sequence[str]) -> list[str]:
+    """``keys`` in the protocol's condition order, anything else after them."""
+    rank = {c: i for i, c in enumerate(conditions)}
+    return sorted(keys, key=lambda k: rank.get(k, len(rank)))  # stable: others keep theirs
+
+
+# ------------------------------------------------------------------------------------------
+# The numbers the first screen shows
+
+
+@dataclass(frozen=True)
+class Spread:
+    """Median and interquartile range of the subjects' values (None without values)."""
+
+    median: float | None
+    q1: float | None
+    q3: float | None
+    n: int
+
+    @classmethod
+    def of(cls, values: Sequence[float | None]) -> Spread:
+        v = np.array([x for x in values if x is not None and np.isfinite(x)], dtype=float)
+        if v.size == 0:
+            return cls(None, None, None, 0)
+        q1, med, q3 = np.percentile(v, [25, 50, 75])
+        return cls(float(med), float(q1), float(q3), int(v.size))
+
+
+@dataclass(frozen=True)
+class ConditionSummary:
+    """One condition's answer: the group fit (± SEM) and the spread of the subjects' own
+    estimates (those the data determine), grip force and model quality."""
+
+    condition: str
+    n_subjects: int
+    grip: Spread  # subjects' mean grip; its median is μ
+    grip_sd: Spread
+    group: dict[str, tuple[float, float | None]]  # parameter → (value, SEM)
+    subjects: dict[str, Spread]
+    group_fit_percent: float | None
+    vaf: Spread
+
+
+def condition_summaries(res: StudyResults) -> list[ConditionSummary]:
+    out = []
+    for c in res.study.conditions:
+        cells = [r for r in res.study.subject_conditions if r.condition == c.condition]
+        group = {}
+        if c.fit is not None:
+            group = {n: (getattr(c.fit.params, n), c.fit.sems.get(n)) for n in FREE_PARAMETERS}
+        subjects = {}
+        for n in FREE_PARAMETERS:
+            subjects[n] = Spread.of(
+                [
+                    getattr(r.fit.params, n)
+                    for r in cells
+                    if r.fit is not None and n not in r.fit.unidentified()
+                ]
+            )
+        out.append(
+            ConditionSummary(
+                condition=c.condition,
+                n_subjects=len(c.subjects),
+                grip=Spread.of(list(c.grip_subject_means_N)),
+                grip_sd=Spread.of(list(c.grip_subject_sds_N)),
+                group=group,
+                subjects=subjects,
+                group_fit_percent=None if c.fit is None else c.fit.fit_percent,
+                vaf=Spread.of([r.vaf_percent for r in cells]),
+            )
+        )
+    return out
+
+
+FREE_PARAMETERS = ("b_i", "k_i", "b_c", "k_c")
+
+
+# ------------------------------------------------------------------------------------------
+# index.html
+
+
 def html_page(
     res: StudyResults,
     images: dict[str, str | None],
@@ -480,32 +682,61 @@ def html_page(
 ) -> str:
     """The report page; ``images`` from :func:`render_figures` (empty: no figures);
     ``extra_sections``: HTML sections placed before the skipped trials (the tracking section
-    of a study with time-varying trials)."""
+    of a study with time-varying trials).
+
+    The answer comes first: the per-condition parameters, then the paper's findings checked,
+    then the method, the figures and the detail; full matrices are collapsed at the end."""
     prov = res.provenance
-    n_ok = sum(c.passed is True for c in res.checks)
-    n_diff = sum(c.passed is False for c in res.checks)
     n_trials = sum(len(r.trials) for r in res.study.subject_conditions)
+    n_fam = sum(_reason_kind(s.reason) == "familiarization" for s in res.study.skipped)
+    n_skip = len(res.study.skipped) - n_fam
     title = f"Steerlab report: {Path(prov.get('session_dir') or 'study').name}"
+    generated = str(prov.get("generated_utc", ""))[:16].replace("T", " ")
     parts = [
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
         f"<title>{_e(title)}</title><style>{_CSS}</style></head><body>",
         f"<h1>{_e(title)}</h1>",
-        f'<p class="muted">Generated {_e(prov.get("generated_utc", ""))} by Steerlab '
-        f"{_e(prov.get('software', {}).get('steerlab', ''))}. {len(res.subjects)} subjects, "
-        f"{len(res.conditions)} conditions, {n_trials} trials analysed, "
-        f"{len(res.study.skipped)} trials skipped. "
-        f"The paper's findings: {n_ok} agree, {n_diff} differ, "
-        f"{len(res.checks) - n_ok - n_diff} not computed.</p>",
-        f'<p class="muted">{_e(wheel_used_sentence(prov.get("input_files", [])))}</p>',
-        _timing_line(prov.get("recording_timing") or {}),
+        f'<p class="muted small">{_count(len(res.subjects), "subject")} × '
+        f"{_count(len(res.conditions), 'condition')}, {_count(n_trials, 'trial')} analysed"
+        + (f", {n_skip} skipped" if n_skip else "")
+        + (f" ({n_fam} familiarization trials not analysed, by design)" if n_fam else "")
+        + f". Generated {_e(generated)} UTC by Steerlab "
+        f"{_e(prov.get('software', {}).get('steerlab', ''))}.</p>",
         _warnings(res),
+        _condition_table(res),
+        _checks_summary(res),
         _contents(images),
-        _how_to_read(res),
-        _key_numbers(res, records),
-        _checks_section(res),
-        "<h2 id='figures'>Figures</h2>",
+        _method_section(res, records),
+        "<h2 id='figures'>Figures</h2>" if any(images.values()) else "",
+        *_figures(images),
+        '<h2 id="detail">Detail</h2><p>Everything behind the numbers above.</p>',
+        _checks_detail(res),
+        _table2(res),
+        _loo_table(res),
+        _anova_table(res),
+        _pairwise_summary(res),
+        _truth_section(res),
+        _inertia_section(res),
+        _weighting_section(res),
+        *extra_sections,
+        _skipped_section(res),
+        _familiarization_section(res),
+        _notes_section(res),
+        _provenance_section(res),
+        _pairwise_matrices(res),
+        "</body></html>",
+    ]
+    return "\n".join(p for p in parts if p)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" + ("" if n == 1 else "s")
+
+
+def _figures(images: dict[str, str | None]) -> list[str]:
+    return [
         _figure(
             images,
             "time_signals",
@@ -536,8 +767,8 @@ def html_page(
             "estimates; grey bars: each estimate ± its SEM (Cramér–Rao bound of the fit, "
             "from the measured noise of Ĥ, see docs/method-estimator.md); black: the group "
             "fit ± SEM; red ×: estimates the data do not determine (at a search bound or "
-            "SEM ≥ value), counted and left out of boxes and statistics. Last panel: I_i, one "
-            "per subject (joint fit over its conditions).",
+            "SEM ≥ value), counted and left out of boxes and statistics. Last panel: "
+            "I<sub>i</sub>, one per subject (joint fit over its conditions).",
         ),
         _figure(
             images,
@@ -553,58 +784,263 @@ def html_page(
             "it (FIT% against the measured group FRF; VAF: median over subjects, time "
             "domain). Thick grey: the point's own local LTI model.",
         ),
-        _condition_table(res),
-        _truth_section(res),
-        _inertia_section(res),
-        _weighting_section(res),
-        _table2(res),
-        _loo_table(res),
-        _anova_table(res),
-        _pairwise_tables(res),
-        *extra_sections,
-        _skipped_section(res),
-        _notes_section(res),
-        _provenance_section(res),
-        "</body></html>",
     ]
-    return "\n".join(p for p in parts if p)
 
 
 def _contents(images: dict[str, str | None]) -> str:
-    items = [
-        ("checks", "The paper's findings, checked"),
-        ("how", "How to read this"),
-        ("numbers", "Key numbers"),
-    ]
+    items = [("method", "Method")]
     if any(v is not None for v in images.values()):
         items.append(("figures", "Figures"))
     items += [
-        ("conditions", "Per condition"),
-        ("inertia", "Inertia"),
-        ("weighting", "Two weightings"),
+        ("checks-detail", "Checks in detail"),
         ("table2", "Table 2"),
         ("loo", "Leave-one-out"),
         ("anova", "RM-ANOVA"),
         ("pairwise", "Pairwise tests"),
+        ("inertia", "Inertia"),
+        ("weighting", "Two weightings"),
         ("skipped", "Skipped trials"),
+        ("familiarization", "Familiarization trials"),
         ("provenance", "Provenance"),
     ]
     links = " · ".join(f'<a href="#{a}">{_e(t)}</a>' for a, t in items)
-    return f'<p class="small">{links}</p>'
+    return f'<p class="small">Further down: {links}</p>'
+
+
+# The "Read this first" items point at the section holding their detail.
+_SECTION_LINKS = {
+    "table2": ("table2", "Table 2"),
+    "loo": ("loo", "leave-one-out"),
+    "anova": ("anova", "statistics"),
+    "checks": ("checks", "the checks"),
+    "notes": ("notes", "notes"),
+    "conditions": ("conditions", "per condition"),
+    "inertia": ("inertia", "inertia"),
+    "weighting": ("weighting", "two weightings"),
+}
+
+
+def _warnings(res: StudyResults) -> str:
+    items = res.reader_warnings()
+    if not items:
+        return ""
+    lis = []
+    for w in items:
+        link = _SECTION_LINKS.get(w.section)
+        more = f' <a href="#{link[0]}">See {_e(link[1])}.</a>' if link else ""
+        lis.append(f"<li>{_prose(w.text)}{more}</li>")
+    return f'<div class="warn" id="read-first"><b>Read this first</b><ul>{"".join(lis)}</ul></div>'
+
+
+def _spread_text(s: Spread, sig: int = 3) -> str:
+    if s.median is None:
+        return "–"
+    if s.n < 2:
+        return _num(s.median, sig)
+    return f"{_num(s.median, sig)} ({_num(s.q1, sig)}–{_num(s.q3, sig)})"
+
+
+def _condition_table(res: StudyResults) -> str:
+    rows = []
+    for s in condition_summaries(res):
+        row = [
+            f"<b>{_e(s.condition)}</b>",
+            str(s.n_subjects),
+            _spread_text(s.grip),
+            _spread_text(s.grip_sd),
+        ]
+        for n in FREE_PARAMETERS:
+            if n in s.group:
+                v, sem = s.group[n]
+                row.append(
+                    f"{_pm(v, sem)}<br><span class='spread'>{_spread_text(s.subjects[n])}</span>"
+                )
+            else:
+                row.append(f"–<br><span class='spread'>{_spread_text(s.subjects[n])}</span>")
+        row += [_fixed(s.group_fit_percent, 1), _spread_text(s.vaf)]
+        rows.append(row)
+    header = [
+        "condition",
+        "n",
+        "grip (N)",
+        "grip SD (N)",
+        "b<sub>i</sub> (N·m·s/rad)",
+        "k<sub>i</sub> (N·m/rad)",
+        "b<sub>c</sub> (N·m·s/rad)",
+        "k<sub>c</sub> (N·m/rad)",
+        "group FIT%",
+        "VAF%",
+    ]
+    return (
+        '<h2 id="conditions">Per condition</h2>'
+        '<p class="small">Parameters: the group fit ± SEM (the arm model fitted to the '
+        "subjects' mean FRF); below, smaller: median (interquartile range) of the subjects' "
+        "own fits. Grip force, grip SD and VAF: median (interquartile range) over subjects; "
+        "the median grip is μ, the LPV scheduling variable.</p>"
+        + _table(header, rows, cls="compact")
+    )
+
+
+def _check_evidence(c: Any, conds: Sequence[str]) -> str:
+    """One line: the number that decides the check."""
+    v = c.values
+    if c.passed is None:
+        return f'<span class="muted">{_prose(c.note)}</span>'
+    if "p_bonferroni" in v:
+        return (
+            f"mean difference {_num(v.get('mean_difference_N'))} N, "
+            f"Bonferroni p = {_p(v['p_bonferroni'])}"
+        )
+    if "pairs_not_significant" in v:
+        ns, n = v["pairs_not_significant"], v.get("n_pairs_tested")
+        if not ns:
+            return f"all {n} pairs significant"
+        return f"{n - len(ns)} of {n} pairs significant; not: {_e(', '.join(ns))}"
+    if "p_gg" in v:
+        return f"RM-ANOVA F = {_num(v.get('F'))}, p = {_p(v['p_gg'])}"
+    if "L" in v:
+        return (
+            f"Page's trend test p = {_p(v.get('p'))}, mean Spearman ρ = "
+            f"{_fixed(v.get('mean_spearman_rho'), 2)}"
+        )
+    if "median_relative_sem" in v:
+        d = v["median_relative_sem"]
+        return "median SEM / estimate: " + ", ".join(
+            f"{_sym(n)} {100 * x:.1f} %" for n, x in d.items() if x is not None
+        )
+    if "condition_means_percent" in v:
+        d = v["condition_means_percent"]
+        txt = "mean VAF: " + ", ".join(f"{k} {d[k]:.0f} %" for k in _in_order(list(d), conds))
+        ns = v.get("not_significantly_lower_than") or []
+        return _e(txt) + (f"; RT not lower than {_e(', '.join(ns))}" if ns else "")
+    if "lti_fit_percent" in v:
+        d = {k: x for k, x in v["lti_fit_percent"].items() if x is not None}
+        if d:
+            k = min(d, key=d.__getitem__)
+            return f"lowest {d[k]:.1f} % ({_e(k)})"
+    if "lpv_fit_percent" in v:
+        flat = [
+            (x, k, m)
+            for k, dm in v["lpv_fit_percent"].items()
+            for m, x in dm.items()
+            if x is not None
+        ]
+        if flat:
+            x, k, m = min(flat)
+            return f"lowest {x:.1f} % ({_e(k)}, {_e(method_name(m))})"
+    if v and all("/" in k for k in v):
+        by: dict[str, list[str]] = {}
+        for k, x in v.items():
+            m, cond = k.split("/", 1)
+            by.setdefault(method_name(m), []).append(f"{cond} {_fixed(x, 0)} %")
+        return "median VAF, " + "; ".join(f"{m}: {', '.join(xs)}" for m, xs in by.items())
+    return _values_prose(v, conds)
+
+
+def _checks_summary(res: StudyResults) -> str:
+    cls = {"pass": "pass", "differs": "differs", "not computed": "na"}
+    conds = list(res.conditions)
+    n_ok = sum(c.passed is True for c in res.checks)
+    n_diff = sum(c.passed is False for c in res.checks)
+    n_na = len(res.checks) - n_ok - n_diff
+    rows = [
+        [
+            f'<span class="{cls[c.status]}">{_e(c.status)}</span>',
+            _prose(c.paper),
+            f'<span class="small">{_check_evidence(c, conds)}</span>',
+        ]
+        for c in res.checks
+    ]
+    counts = f"{n_ok} agree, {n_diff} differ" + (f", {n_na} not computed" if n_na else "")
+    return (
+        f'<h2 id="checks">The paper\'s findings, checked on these data: {counts}</h2>'
+        '<p class="small">Each finding of Pronker et al. (2017) decided from this study\'s '
+        'numbers; the test and all values are in <a href="#checks-detail">the checks in '
+        "detail</a>. A “differs” is a finding about these data, not necessarily an "
+        "error.</p>" + _table(["result", "finding", "evidence"], rows, left=3, cls="compact")
+    )
+
+
+def _value_text(k: str, x: Any) -> str:
+    if (k == "p" or k.startswith("p_")) and isinstance(x, float):
+        return _p(x)
+    return _num(x)
+
+
+def _values_prose(values: dict[str, Any], conds: Sequence[str]) -> str:
+    """A check's numbers in words: dicts over conditions (or parameters) as "RT 43.7, BT18
+    44.8, …" in the protocol's order, lists as comma-separated words."""
+    parts = []
+    for k, v in values.items():
+        if "/" in k:
+            m, cond = k.split("/", 1)
+            label = f"{_e(method_name(m))}, {_e(cond)} left out"
+        else:
+            label = _prose(VALUE_LABELS.get(k, k.replace("_", " ")))
+        if isinstance(v, dict):
+            inner = []
+            for a in _in_order(list(v), conds):
+                b = v[a]
+                if isinstance(b, dict):
+                    sub = ", ".join(f"{_e(method_name(m))} {_num(x)}" for m, x in b.items())
+                    inner.append(f"{_e(a)}: {sub}")
+                else:
+                    inner.append(f"{_sym(a)} {_num(b)}")
+            nested = any(isinstance(b, dict) for b in v.values())
+            parts.append(f"{label}: " + ("; " if nested else ", ").join(inner))
+        elif isinstance(v, list):
+            parts.append(f"{label}: {_e(', '.join(map(str, v))) or 'none'}")
+        elif v is None:
+            parts.append(f"{label}: –")
+        else:
+            parts.append(f"{label} = {_value_text(k, v)}")
+    return "; ".join(parts)
+
+
+def _checks_detail(res: StudyResults) -> str:
+    cls = {"pass": "pass", "differs": "differs", "not computed": "na"}
+    conds = list(res.conditions)
+    rows = [
+        [
+            f'<span class="{cls[c.status]}">{_e(c.status)}</span>',
+            _prose(c.paper),
+            _prose(c.test),
+            f'<span class="small">{_values_prose(c.values, conds)}</span>'
+            + (f'<br><span class="muted small">{_prose(c.note)}</span>' if c.note else ""),
+        ]
+        for c in res.checks
+    ]
+    return (
+        '<h2 id="checks-detail">The paper\'s findings in detail</h2>'
+        "<p>Each row restates one finding of Pronker et al. (2017) and decides it from this "
+        "study's numbers with the test shown; nothing here is copied from the paper.</p>"
+        + _table(["result", "paper", "test", "values"], rows, left=4)
+    )
+
+
+def _method_section(res: StudyResults, records: Sequence[TrialRecord]) -> str:
+    prov = res.provenance
+    return (
+        '<h2 id="method">Method</h2>'
+        f"<p class='muted'>{_prose(wheel_used_sentence(prov.get('input_files', [])))}</p>"
+        + _timing_line(prov.get("recording_timing") or {})
+        + _how_to_read(res)
+        + _key_numbers(res, records)
+    )
 
 
 def _how_to_read(res: StudyResults) -> str:
     pct = round(100 * res.study.options.confidence)
-    return f"""<h2 id="how">How to read this</h2>
+    return f"""<h3 id="how">How to read this</h3>
 <ul>
 <li><b>Admittance</b> H = θ/T<sub>d</sub> (rad/N·m): how far the wheel turns per N·m of torque
 on the hands. High = relaxed arms, low = stiff arms. It is estimated from the closed loop with the
 perturbation torque as instrument, per double frequency band.</li>
 <li><b>Arm model</b>: contact (b<sub>c</sub>, k<sub>c</sub>) in series with the intrinsic arm
-(I<sub>i</sub>, b<sub>i</sub>, k<sub>i</sub>). {_e(_inertia_sentence(res))}
+(I<sub>i</sub>, b<sub>i</sub>, k<sub>i</sub>). {_prose(_inertia_sentence(res))}
 <b>SEM</b> = standard error of an estimate (Cramér–Rao bound of the fit actually used);
 {pct} % intervals on FRFs are across subjects.</li>
-<li><b>Fit</b>: {_e(_weighting_sentence(res))}</li>
+<li><b>Fit</b>: {_prose(_weighting_sentence(res))}</li>
 <li><b>VAF</b> (time domain) and <b>FIT%</b> (frequency domain, 1/f-weighted): 100 % is a perfect
 model. VAF uses the measured driver torque as the model's input.</li>
 <li><b>μ</b>: the median over subjects of their mean total grip force in a condition; the LPV
@@ -614,7 +1050,7 @@ p when Mauchly's test rejects sphericity, and reported always), Bonferroni-corre
 t-tests, and Page's trend test where the paper claims a rising or falling trend. α = {ALPHA}.</li>
 <li><b>Checks</b>: each of the paper's qualitative findings is recomputed from these data:
 <span class="pass">pass</span> = the data agree, <span class="differs">differs</span> = they do
-not. A "differs" is a finding about these data, not necessarily an error.</li>
+not.</li>
 </ul>"""
 
 
@@ -666,6 +1102,11 @@ def _key_numbers(res: StudyResults, records: Sequence[TrialRecord]) -> str:
             )
         )
     inert = res.inertia_dict()
+    if res.lpv is not None:
+        excluded = ", ".join(res.lpv.excluded) or "none"
+        lpv = f"order-{res.lpv.table.order} polynomials in μ; left out: {excluded}"
+    else:
+        lpv = f"not built: {res.lpv_error or 'no operating points'}"
     rows += [
         (
             "I_i",
@@ -688,57 +1129,12 @@ def _key_numbers(res: StudyResults, records: Sequence[TrialRecord]) -> str:
             else ("coherence" if fit.coherence_weighting else "1")
             + (" × 1/f" if fit.frequency_weighting else ""),
         ),
-        (
-            "LPV",
-            "order-2 polynomials in μ; RT left out",
-            f"order {res.lpv.table.order if res.lpv else '–'}; "
-            f"{', '.join(res.lpv.excluded) if res.lpv else '–'} left out",
-        ),
+        ("LPV", "order-2 polynomials in μ; left out: RT", lpv),
     ]
-    body = _table(["", "paper", "this study"], [[_e(a), _e(b), _e(c)] for a, b, c in rows])
-    return f'<h2 id="numbers">Key numbers of the method</h2>{body}'
-
-
-def _check_values(values: dict[str, Any]) -> str:
-    parts = []
-    for k, v in values.items():
-        if isinstance(v, dict):
-            inner = ", ".join(
-                f"{_e(a)}: {_num(b) if not isinstance(b, dict) else _e(_short(b))}"
-                for a, b in v.items()
-            )
-            parts.append(f"{_e(k)}: {{{inner}}}")
-        elif isinstance(v, list):
-            parts.append(f"{_e(k)}: {_e(', '.join(map(str, v))) or 'none'}")
-        elif (k == "p" or k.startswith("p_")) and isinstance(v, float):
-            parts.append(f"{_e(k)} = {_p(v)}")
-        else:
-            parts.append(f"{_e(k)} = {_num(v)}")
-    return "; ".join(parts)
-
-
-def _short(d: dict) -> str:
-    return ", ".join(f"{a} {_num(b)}" for a, b in d.items())
-
-
-def _checks_section(res: StudyResults) -> str:
-    cls = {"pass": "pass", "differs": "differs", "not computed": "na"}
-    rows = [
-        [
-            f'<span class="{cls[c.status]}">{_e(c.status)}</span>',
-            _e(c.paper),
-            _e(c.test),
-            f'<span class="small">{_check_values(c.values)}</span>'
-            + (f'<br><span class="muted small">{_e(c.note)}</span>' if c.note else ""),
-        ]
-        for c in res.checks
-    ]
-    return (
-        '<h2 id="checks">The paper\'s findings, checked on these data</h2>'
-        "<p>Each row restates one finding of Pronker et al. (2017) and decides it from this "
-        "study's numbers with the test shown; nothing here is copied from the paper.</p>"
-        + _table(["result", "paper", "test", "values"], rows, left=4)
+    body = _table(
+        ["", "paper", "this study"], [[_prose(a), _prose(b), _prose(c)] for a, b, c in rows]
     )
+    return f'<h3 id="numbers">Key numbers: the paper and this study</h3>{body}'
 
 
 def _inertia_sentence(res: StudyResults) -> str:
@@ -771,14 +1167,6 @@ def _weighting_sentence(res: StudyResults) -> str:
     return f"{main}; the {fit.n_exclude_low} lowest bands are left out.{other}"
 
 
-def _warnings(res: StudyResults) -> str:
-    items = res.warnings()
-    if not items:
-        return ""
-    lis = "".join(f"<li>{_e(w)}</li>" for w in items)
-    return f'<div class="warn"><b>Read this first</b><ul>{lis}</ul></div>'
-
-
 def _truth_section(res: StudyResults) -> str:
     if not res.simulated_truth:
         return ""
@@ -806,13 +1194,13 @@ def _truth_section(res: StudyResults) -> str:
                 f"({float(np.median(np.abs(err))):.1f} %)"
             )
         rows.append(row)
-    header = ["condition", "I_i", "b_i", "k_i", "b_c", "k_c"]
+    header = ["condition", *(_sym(n) for n in ("I_i", "b_i", "k_i", "b_c", "k_c"))]
     return (
         '<h2 id="truth">Recovered parameters and the simulated truth</h2>'
         "<p>This study is simulated: each cell shows the median over subjects of the "
         "estimate / of the simulated subject's true value (median |error| over subjects). "
-        "Each trial varies around the subject's value by a few per cent "
-        "(PopulationSpread.trial_cv).</p>" + _table(header, rows)
+        "Each trial varies around the subject's value by a few per cent (the simulator's "
+        "trial-to-trial spread).</p>" + _table(header, rows)
     )
 
 
@@ -822,31 +1210,33 @@ def _inertia_section(res: StudyResults) -> str:
     if fit.inertia == "fixed":
         return (
             '<h2 id="inertia">Inertia</h2>'
-            f"<p>I_i was held at {_num(fit.I_i)} kg·m² (--inertia fixed), not estimated. The "
-            "default estimates it from the data, one value per subject.</p>"
+            f"<p>I<sub>i</sub> was held at {_num(fit.I_i)} kg·m² (inertia option “fixed”), "
+            "not estimated. The default estimates it from the data, one value per subject.</p>"
         )
     if not d["fits"]:
-        return '<h2 id="inertia">Inertia</h2><p>I_i was fitted per subject × condition.</p>'
+        return (
+            '<h2 id="inertia">Inertia</h2><p>I<sub>i</sub> was fitted per subject × condition.</p>'
+        )
     rows = []
     for v in d["fits"]:
         name, sens = v["fit"], v["sensitivity"]
         med = {}
-        for q in ("k_i", "b_i", "k_c", "b_c"):
+        for q in FREE_PARAMETERS:
             vals = [c.get(f"{q}_percent_per_10_percent_I_i") for c in sens]
             vals = [x for x in vals if x is not None and np.isfinite(x)]
             med[q] = f"{float(np.median(vals)):+.1f} %" if vals else "–"
         rel = v["relative_sem"]
+        if rel is None:
+            rel_txt = "–"
+        elif v["poorly_determined"]:
+            rel_txt = f'<span class="bad">{100 * rel:.0f} %</span>'
+        else:
+            rel_txt = f"{100 * rel:.1f} %"
         rows.append(
             [
                 _e(name),
-                f"{_num(v['I_i_kgm2'])} ± {_num(v['I_i_sem_kgm2'])}",
-                (
-                    f'<span class="bad">{100 * rel:.0f} %</span>'
-                    if v["poorly_determined"]
-                    else f"{100 * rel:.1f} %"
-                )
-                if rel is not None
-                else "–",  # fmt: skip
+                _pm(v["I_i_kgm2"], v["I_i_sem_kgm2"]),
+                rel_txt,
                 med["k_i"],
                 med["b_i"],
                 med["k_c"],
@@ -855,22 +1245,23 @@ def _inertia_section(res: StudyResults) -> str:
         )
     header = [
         "fit",
-        "I_i ± SEM (kg·m²)",
+        "I<sub>i</sub> ± SEM (kg·m²)",
         "relative SEM",
-        "k_i per +10 % I_i",
-        "b_i",
-        "k_c",
-        "b_c",
+        "k<sub>i</sub> per +10 % I<sub>i</sub>",
+        "b<sub>i</sub>",
+        "k<sub>c</sub>",
+        "b<sub>c</sub>",
     ]
     return (
-        '<h2 id="inertia">Inertia: what the data say about I_i</h2>'
-        "<p>The paper holds I_i constant without giving its value. Here it is estimated: "
-        "one value per subject, shared by all of that subject's conditions (and one for the "
-        "group fits). The sensitivity columns say how much each parameter would move (median "
-        "over the conditions) if I_i were 10 % higher, from the joint fit's covariance: "
-        "what a wrong fixed inertia would do to the other estimates. A relative SEM above "
-        f"{100 * INERTIA_POORLY_DETERMINED:.0f} % is marked: the data say little about I_i "
-        "there.</p>" + _table(header, rows)
+        '<h2 id="inertia">Inertia: what the data say about I<sub>i</sub></h2>'
+        "<p>The paper holds I<sub>i</sub> constant without giving its value. Here it is "
+        "estimated: one value per subject, shared by all of that subject's conditions; the "
+        "group fits hold the median of the subjects' values. The sensitivity columns say how "
+        "much each parameter would move (median over the conditions) if I<sub>i</sub> were "
+        "10 % higher, from the joint fit's covariance: what a wrong fixed inertia would do "
+        "to the other estimates. A "
+        f"relative SEM above {100 * INERTIA_POORLY_DETERMINED:.0f} % is marked: the data say "
+        "little about I<sub>i</sub> there.</p>" + _table(header, rows)
     )
 
 
@@ -880,9 +1271,11 @@ def _weighting_section(res: StudyResults) -> str:
     wc = res.weighting_comparison()
     main, other = wc["default"], wc["other"]
     rows = []
+    free: tuple[str, ...] = ()
     for c in res.study.conditions:
         if c.fit is None or c.fit_compare is None:
             continue
+        free = tuple(c.fit.free)
         cells = [r for r in res.study.subject_conditions if r.condition == c.condition]
         vaf_a = [r.vaf_percent for r in cells if r.vaf_percent is not None]
         vaf_b = [r.vaf_compare_percent for r in cells if r.vaf_compare_percent is not None]
@@ -891,87 +1284,52 @@ def _weighting_section(res: StudyResults) -> str:
             a, b = getattr(c.fit.params, n), getattr(c.fit_compare.params, n)
             sa, sb = c.fit.sems.get(n), c.fit_compare.sems.get(n)
             mark = ' class="bad"' if weightings_disagree(a, b, sa, sb) else ""
-            row.append(f"<span{mark}>{_num(a)} ± {_num(sa)}<br>{_num(b)} ± {_num(sb)}</span>")
+            row.append(f"<span{mark}>{_pm(a, sa)}<br>{_pm(b, sb)}</span>")
         row += [
             f"{_fixed(c.fit.fit_percent, 1)}<br>{_fixed(c.fit_compare.fit_percent, 1)}",
             f"{_fixed(float(np.median(vaf_a)) if vaf_a else None, 1)}<br>"
             f"{_fixed(float(np.median(vaf_b)) if vaf_b else None, 1)}",
         ]
         rows.append(row)
-    free = res.study.conditions[0].fit.free if res.study.conditions and res.study.conditions[
-        0].fit else ()  # fmt: skip
-    header = ["condition", *free, "group FIT%", "median VAF%"]
-    n_dis = sum(bool(r["disagree"]) for r in wc["cells"])
+    header = ["condition", *(_sym(n) for n in free), "group FIT%", "median VAF%"]
+    subj = [r for r in wc["cells"] if r["subject"] != "group"]
+    dis = [r for r in subj if r["disagree"]]
+    listing = ""
+    if dis:
+        names = "; ".join(
+            f"{r['subject']} {r['condition']}: {', '.join(r['disagree'])}" for r in dis
+        )
+        listing = (
+            f"<details><summary>The {len(dis)} subject fits that change</summary>"
+            f"<p class='small'>{_prose(names)}</p></details>"
+        )
     return (
         '<h2 id="weighting">Two weightings side by side</h2>'
-        f"<p>Top line of each cell: the default ({_e(main)}); bottom: {_e(other)}. Group fits "
-        "per condition, with the median over subjects of their own VAF. Red: the two differ by "
-        f"more than {WEIGHTING_DISAGREEMENT_SEMS:g}× the larger SEM. Over the subject fits, "
-        f"{n_dis} of {len(wc['cells'])} cells disagree somewhere (results.json, "
+        f"<p>Top line of each cell: the default, {_e(WEIGHTING_NAMES.get(main, main))}; "
+        f"bottom: {_e(WEIGHTING_NAMES.get(other, other))}. Group fits per condition, with the "
+        "median over subjects of their own VAF. Red: the two differ by more than "
+        f"{WEIGHTING_DISAGREEMENT_SEMS:g}× the larger SEM. Of the {len(subj)} subject fits, "
+        f"{len(dis)} change by more than that on some parameter (results.json, "
         "<code>weighting_comparison</code>). Why the default is maximum likelihood: "
-        "docs/method-estimator.md.</p>" + _table(header, rows)
-    )
-
-
-def _condition_table(res: StudyResults) -> str:
-    rows = []
-    for c in res.study.conditions:
-        cells = [r for r in res.study.subject_conditions if r.condition == c.condition]
-        vaf = [r.vaf_percent for r in cells if r.vaf_percent is not None]
-        fitp = [r.fit_percent for r in cells if r.fit_percent is not None]
-        row = [
-            _e(c.condition),
-            str(len(c.subjects)),
-            _fixed(c.grip_median_of_means_N, 1),
-            _fixed(float(np.nanmean(c.grip_subject_means_N)), 1),
-            _fixed(float(np.nanmean(c.grip_subject_sds_N)), 2),
-        ]
-        for n in ("b_i", "k_i", "b_c", "k_c"):
-            if c.fit is None:
-                row.append("–")
-            else:
-                row.append(f"{_num(getattr(c.fit.params, n))} ± {_num(c.fit.sems.get(n))}")
-        row += [
-            _fixed(None if c.fit is None else c.fit.fit_percent, 2),
-            _fixed(float(np.median(vaf)) if vaf else None, 1),
-            _fixed(float(np.median(fitp)) if fitp else None, 1),
-        ]
-        rows.append(row)
-    header = [
-        "condition",
-        "n",
-        "μ (N)",
-        "mean grip (N)",
-        "mean grip SD (N)",
-        "b_i ± SEM",
-        "k_i ± SEM",
-        "b_c ± SEM",
-        "k_c ± SEM",
-        "group FIT%",
-        "median VAF%",
-        "median FIT%",
-    ]
-    return (
-        '<h2 id="conditions">Per condition</h2>'
-        "<p>Group fit: the arm model fitted to the mean over subjects of their FRFs (SEM from "
-        "the spread between subjects). Medians: over the subjects' own fits. Units: b in "
-        "N·m·s/rad, k in N·m/rad.</p>" + _table(header, rows)
+        "docs/method-estimator.md.</p>" + _table(header, rows) + listing
     )
 
 
 def _table2(res: StudyResults) -> str:
     if res.lpv is None:
-        return f'<h2 id="table2">Table 2</h2><p>No LPV model: {_e(res.lpv_error)}</p>'
-    paper_order = ("PT", "BT5", "BT8", "BT12", "BT18", "RT")
-    order: list[str] = [c for c in paper_order if c in res.conditions]
-    order += [c for c in res.conditions if c not in order]
+        return (
+            '<h2 id="table2">Table 2</h2><p class="bad">No LPV model could be built: '
+            f"{_prose(res.lpv_error or 'no operating points')}.</p>"
+        )
+    order = _in_order([r.condition for r in res.lpv.table.rows], res.conditions)
     rows_by = {r.condition: r for r in res.lpv.table.rows}
     header = ["FIT%"] + [_e(c) for c in order]
     rows = [["operating point μ (N)"] + [_fixed(rows_by[c].mu_N, 1) for c in order]]
     rows.append(["LTI"] + [_fixed(rows_by[c].lti_fit_percent, 2) for c in order])
     for m in res.lpv.table.methods:
         rows.append(
-            [f"LPV, {_e(m)}"] + [_fixed(rows_by[c].lpv_fit_percent.get(m), 2) for c in order]
+            [f"LPV, {_e(method_name(m))}"]
+            + [_fixed(rows_by[c].lpv_fit_percent.get(m), 2) for c in order]
         )
     rows.append(
         ['<span class="muted">paper LTI</span>']
@@ -988,12 +1346,13 @@ def _table2(res: StudyResults) -> str:
         ]
     )
     t = res.lpv.table
+    excluded = "; ".join(f"{k}: {v}" for k, v in t.excluded.items()) or "none"
     return (
         '<h2 id="table2">Table 2: FIT% at the operating points</h2>'
         "<p>FIT% of the local LTI model (the group fit) and of each LPV model at μ, against "
         "the measured group FRF over all bands. "
-        f"De Caigny structure: {_e(t.structure)} ({_e(t.structure_reason)}). "
-        f"Excluded: {_e('; '.join(f'{k}: {v}' for k, v in t.excluded.items()) or 'none')}.</p>"
+        f"De Caigny structure: {_e(STRUCTURE_NAMES.get(t.structure or '', t.structure or 'none'))} "
+        f"({_prose(t.structure_reason)}). Left out of the LPV model: {_prose(excluded)}.</p>"
         + _table(header, rows)
     )
 
@@ -1002,22 +1361,23 @@ def _loo_table(res: StudyResults) -> str:
     loo = res.leave_one_out
     if loo is None:
         why = res.lpv.leave_one_out_skipped if res.lpv else res.lpv_error
-        return f'<h2 id="loo">Leave-one-out</h2><p>Not computed: {_e(why)}</p>'
+        return f'<h2 id="loo">Leave-one-out</h2><p>Not computed: {_prose(why)}.</p>'
     vaf = {(v.method, v.condition): v for v in res.loo_vaf}
+    rank = {c: i for i, c in enumerate(res.conditions)}
     rows = []
-    for r in loo.results:
+    for r in sorted(loo.results, key=lambda r: (rank.get(r.condition, len(rank)), r.method)):
         v = vaf.get((r.method, r.condition))
         rows.append(
             [
                 _e(r.condition),
-                _e(r.method),
+                _e(method_name(r.method)),
                 _fixed(r.mu_N, 1),
                 _fixed(r.fit_vs_measured_percent, 2),
                 _fixed(r.in_sample_fit_vs_measured_percent, 2),
                 _fixed(r.fit_vs_local_percent, 2),
                 _fixed(None if v is None else v.median_vaf_percent, 1),
                 _fixed(None if v is None else v.median_in_sample_vaf_percent, 1),
-                _e(", ".join(r.trained_on)),
+                _e(", ".join(_in_order(list(r.trained_on), res.conditions))),
             ]
         )
     ends = "; ".join(f"{k}: {v}" for k, v in loo.not_left_out.items())
@@ -1027,7 +1387,7 @@ def _loo_table(res: StudyResults) -> str:
         "others and evaluated at the left-out μ. FIT% against the measured group FRF (and "
         "against the point's own local model); VAF: the subjects' measured driver torque "
         "drives the predicted model, compared with their measured angle, median over "
-        f"subjects. Not left out: {_e(ends)}.</p>"
+        f"subjects. Not left out: {_prose(ends)}.</p>"
         + _table(
             [
                 "left out",
@@ -1051,7 +1411,7 @@ def _anova_table(res: StudyResults) -> str:
     for q in res.statistics.values():
         a = q.anova
         if a is None:
-            rows.append([_e(q.label), _e(q.unit)] + ["–"] * 10 + [_e("; ".join(q.errors))])
+            rows.append([_prose(q.label), _e(q.unit)] + ["–"] * 10 + [_prose("; ".join(q.errors))])
             continue
         sph = a.sphericity
         sig = a.p_gg < ALPHA
@@ -1060,7 +1420,7 @@ def _anova_table(res: StudyResults) -> str:
         )
         rows.append(
             [
-                _e(q.label),
+                _prose(q.label),
                 _e(q.unit),
                 str(a.n_subjects),
                 _fixed(a.F, 2),
@@ -1079,7 +1439,7 @@ def _anova_table(res: StudyResults) -> str:
         '<h2 id="anova">Repeated-measures ANOVA over the conditions</h2>'
         "<p>One value per subject and condition (repetitions pooled). p<sub>GG</sub>: "
         "Greenhouse–Geisser corrected; bold when &lt; α. Page: one-sided trend test for a "
-        "rise from RT to PT. I<sub>i</sub> is fixed in every fit and not tested.</p>"
+        f"rise from RT to PT. {_prose(_inertia_sentence(res))}</p>"
         + _table(
             [
                 "quantity",
@@ -1090,9 +1450,9 @@ def _anova_table(res: StudyResults) -> str:
                 "df2",
                 "p",
                 "Mauchly W (p)",
-                "ε_GG",
-                "p_GG",
-                "η²p",
+                "ε<sub>GG</sub>",
+                "p<sub>GG</sub>",
+                "η²<sub>p</sub>",
                 "Page p (rise)",
                 "condition means",
             ],
@@ -1102,12 +1462,49 @@ def _anova_table(res: StudyResults) -> str:
     )
 
 
-def _pairwise_tables(res: StudyResults) -> str:
-    out = [
+def _pairwise_summary(res: StudyResults) -> str:
+    """One row per quantity: how many pairs differ, and the pairs that do not (usually the
+    shorter list), with their mean difference."""
+    rows = []
+    for q in res.statistics.values():
+        pw = q.pairwise
+        if pw is None:
+            continue
+        comps = list(pw.comparisons)
+        sig = [c for c in comps if c.p_corrected < pw.alpha]
+        ns = [c for c in comps if not c.p_corrected < pw.alpha]
+        if not ns:
+            ns_txt = "none"
+        elif not sig:
+            ns_txt = f"all {len(comps)}"
+        else:
+            ns_txt = "; ".join(
+                f"{_e(c.a)}–{_e(c.b)} ({_num(c.mean_difference)} {_e(q.unit)}, "
+                f"p = {_p(c.p_corrected)})"
+                for c in ns
+            )
+        rows.append(
+            [
+                _prose(q.label),
+                str(pw.n_subjects),
+                f"{len(sig)} of {len(comps)}",
+                ns_txt,
+            ]
+        )
+    if not rows:
+        return '<h2 id="pairwise">Pairwise comparisons</h2><p>Not computed.</p>'
+    return (
         '<h2 id="pairwise">Pairwise comparisons (paired t-tests, Bonferroni)</h2>'
-        "<p>Above the diagonal: Bonferroni-corrected p (bold when &lt; α). Below: mean "
-        "difference row − column, in the quantity's unit.</p>"
-    ]
+        f"<p>Pairs of conditions whose difference is significant (Bonferroni-corrected "
+        f"p &lt; {ALPHA}), and the pairs that are not, with their mean difference (first "
+        'minus second). Every p and difference: <a href="#pairwise-matrices">the full '
+        "matrices</a> at the end.</p>"
+        + _table(["quantity", "n", "pairs that differ", "pairs that do not differ"], rows, left=1)
+    )
+
+
+def _pairwise_matrices(res: StudyResults) -> str:
+    out = []
     for q in res.statistics.values():
         pw = q.pairwise
         if pw is None:
@@ -1127,9 +1524,17 @@ def _pairwise_tables(res: StudyResults) -> str:
                 else:
                     row.append(f'<span class="muted">{_num(c.mean_difference)}</span>')
             rows.append(row)
-        out.append(f"<h3>{_e(q.label)} ({_e(q.unit)}), n = {pw.n_subjects}</h3>")
+        out.append(f"<h3>{_prose(q.label)} ({_e(q.unit)}), n = {pw.n_subjects}</h3>")
         out.append(_table([""] + [_e(c) for c in conds], rows))
-    return "\n".join(out)
+    if not out:
+        return ""
+    return (
+        f'<details id="pairwise-matrices"><summary>Full pairwise matrices ({len(out) // 2} '
+        "quantities)</summary><p>Above the diagonal: Bonferroni-corrected p (bold when &lt; "
+        "α). Below: mean difference row − column, in the quantity's unit.</p>"
+        + "\n".join(out)
+        + "</details>"
+    )
 
 
 def _reason_kind(reason: str) -> str:
@@ -1146,31 +1551,41 @@ def _reason_kind(reason: str) -> str:
     return reason.split(":")[0]
 
 
+def _trial_rows(items: Sequence[Any]) -> list[list[str]]:
+    return [
+        [
+            f"<code>{_e(s.label)}</code>",
+            _prose(s.reason),
+            f'<code class="small">{_e(s.source)}</code>',
+        ]
+        for s in items
+    ]
+
+
 def _skipped_section(res: StudyResults) -> str:
-    skipped = res.study.skipped
+    """Trials left out for a reason; familiarization trials are not among them."""
+    skipped = [s for s in res.study.skipped if _reason_kind(s.reason) != "familiarization"]
     if not skipped:
-        return '<h2 id="skipped">Skipped trials</h2><p>None.</p>'
+        return '<h2 id="skipped">Skipped trials</h2><p>None: every measured trial was analysed.</p>'
     counts = Counter(_reason_kind(s.reason) for s in skipped)
     summary = ", ".join(f"{k}: {n}" for k, n in counts.most_common())
-    routine = [s for s in skipped if _reason_kind(s.reason) == "familiarization"]
-    other = [s for s in skipped if _reason_kind(s.reason) != "familiarization"]
+    return f'<h2 id="skipped">Skipped trials ({len(skipped)})</h2><p>{_e(summary)}.</p>' + _table(
+        ["trial", "reason", "source"], _trial_rows(skipped), left=3
+    )
 
-    def rows(items):
-        return [
-            [_e(s.label), _e(s.reason), f'<span class="small">{_e(s.source)}</span>'] for s in items
-        ]
 
-    parts = [f'<h2 id="skipped">Skipped trials ({len(skipped)})</h2><p>{_e(summary)}.</p>']
-    if other:
-        parts.append(_table(["trial", "reason", "source"], rows(other), left=3))
-    if routine:
-        parts.append(
-            f"<details><summary>{len(routine)} familiarization trials (never analysed, by "
-            "design)</summary>"
-            + _table(["trial", "reason", "source"], rows(routine), left=3)
-            + "</details>"
-        )
-    return "\n".join(parts)
+def _familiarization_section(res: StudyResults) -> str:
+    fam = [s for s in res.study.skipped if _reason_kind(s.reason) == "familiarization"]
+    if not fam:
+        return ""
+    return (
+        f'<h2 id="familiarization">Familiarization trials ({len(fam)}), not analysed by '
+        "design</h2><p>Each condition starts with a familiarization trial (the paper's "
+        "protocol); only the measured repetitions after it are analysed.</p>"
+        f"<details><summary>The {len(fam)} familiarization trials</summary>"
+        + _table(["trial", "reason", "source"], _trial_rows(fam), left=3)
+        + "</details>"
+    )
 
 
 def _notes_section(res: StudyResults) -> str:
@@ -1181,14 +1596,19 @@ def _notes_section(res: StudyResults) -> str:
             "estimates at the edge of the fit's search box (not determined by the data, "
             f"whatever their SEM): {'; '.join(at_bound)}"
         )
+    if res.left_out_of_statistics:
+        notes.append(
+            "estimates left out of the statistics (at a search bound, or SEM ≥ value): "
+            + "; ".join(res.left_out_of_statistics)
+        )
     if res.lpv_error:
-        notes.append(f"LPV: {res.lpv_error}")
+        notes.append(f"LPV model not built: {res.lpv_error}")
     for q in res.statistics.values():
         notes += [f"{q.label}: {e}" for e in q.errors]
     if not notes:
         return ""
-    items = "".join(f"<li>{_e(n)}</li>" for n in notes)
-    return f"<h2>Notes</h2><ul>{items}</ul>"
+    items = "".join(f"<li>{_prose(n)}</li>" for n in notes)
+    return f'<h2 id="notes">Notes</h2><ul>{items}</ul>'
 
 
 def _provenance_section(res: StudyResults) -> str:
@@ -1207,12 +1627,15 @@ def _provenance_section(res: StudyResults) -> str:
         ]
         for f in prov.get("input_files", [])
     ]
-    timings = ", ".join(f"{k} {v:.2f} s" for k, v in res.timings_s.items())
+    timings = ", ".join(
+        f"{TIMING_NAMES.get(k, k.replace('_', ' '))}: {_seconds(v)}"
+        for k, v in res.timings_s.items()
+    )
     return (
         '<h2 id="provenance">Provenance</h2>'
         f"<p>Generated {_e(prov.get('generated_utc'))} from "
         f"<code>{_e(prov.get('session_dir'))}</code>. Software: {_e(sw)}. "
-        f"Analysis timings: {_e(timings)}. Every number is in <code>{RESULTS_JSON}</code> "
+        f"Analysis time: {_e(timings)}. Every number is in <code>{RESULTS_JSON}</code> "
         f"(keys documented in docs/results.md); per-subject values also in "
         f"<code>{PER_SUBJECT_CSV}</code>.</p>"
         + _table(

@@ -9,6 +9,7 @@ import html
 import json
 import re
 import shutil
+from html.parser import HTMLParser
 from pathlib import Path
 
 import h5py
@@ -287,8 +288,9 @@ def test_index_html_is_self_contained_with_figures_and_tables(report, results):
     # Table 2 shows our FIT% next to the paper's (94.1 for PT, LTI).
     bt12 = next(r for r in results["lpv"]["table2"]["rows"] if r["condition"] == "BT12")
     assert f"{bt12['lti_fit_percent']:.1f}" in page and "94.1" in page
+    text = _visible(page)
     for c in results["checks"]:
-        assert html.escape(c["paper"]) in page
+        assert c["paper"].replace("_", "") in text  # k_i is written k<sub>i</sub>
     assert page.count('class="pass"') >= 10
 
 
@@ -495,3 +497,189 @@ def test_refuses_to_replace_a_directory_that_is_not_a_report(study_dir, tmp_path
     with pytest.raises(ReportError, match="thesis.tex"):
         write_report(study_dir, out, figures=False)
     assert [p.name for p in out.iterdir()] == ["thesis.tex"]
+
+
+# ------------------------------------------------------------------------------------------
+# The page as a reader meets it
+
+
+class _VisibleText(HTMLParser):
+    """The text a browser shows, without styles, page title and <code> (file names, keys)."""
+
+    SKIP = ("style", "script", "code", "title")
+    BLOCK = ("tr", "p", "h1", "h2", "h3", "li", "div", "br", "table", "figure", "summary")
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.out: list[str] = []
+        self.skipping: list[str] = []
+
+    def handle_starttag(self, tag, attrs):
+        if tag in self.SKIP:
+            self.skipping.append(tag)
+        if tag in self.BLOCK:
+            self.out.append("\n")
+        if tag in ("td", "th"):
+            self.out.append(" | ")
+
+    def handle_endtag(self, tag):
+        if self.skipping and self.skipping[-1] == tag:
+            self.skipping.pop()
+
+    def handle_data(self, data):
+        if not self.skipping:
+            self.out.append(data)
+
+
+def _visible(page: str) -> str:
+    p = _VisibleText()
+    p.feed(page)
+    return "".join(p.out)
+
+
+def _page(report) -> str:
+    return report[0].index_html.read_text(encoding="utf-8")
+
+
+def _read_first(page: str) -> str:
+    m = re.search(r'<div class="warn"[^>]*>(.*?)</div>', page, re.S)
+    assert m, "no Read this first box"
+    return m.group(1)
+
+
+def test_the_answer_comes_first(report, results):
+    """The per-condition parameters (group fit ± SEM and the subjects' spread) and the
+    paper's checks are the first thing on the page, before the method and the detail, within
+    what a 1400 × 900 screen shows (about 3000 characters of visible text here)."""
+    page = _page(report)
+    at = {k: page.index(f'id="{k}"') for k in ("conditions", "checks", "method", "numbers")}
+    assert at["conditions"] < at["checks"] < at["method"] < at["numbers"]
+    text = _visible(page)
+    first_check = html.unescape(results["checks"][0]["paper"])
+    assert text.index(first_check) < 3000
+    assert text.index("Per condition") < 1200  # the header and the box stay short
+    cond_table = page[at["conditions"] : at["checks"]]
+    bt12 = re.search(r"<tr><td[^>]*><b>BT12</b>.*?</tr>", cond_table, re.S).group(0)
+    # k_i: the group fit ± SEM, then the subjects' median (interquartile range)
+    assert re.search(r"\d ± \d[^<]*<br><span class='spread'>[\d.]+ \([\d.]+–[\d.]+\)", bt12)
+    for c in results["checks"]:
+        assert html.escape(c["status"]) in page[at["checks"] : at["method"]]
+
+
+def test_read_this_first_counts_and_links_instead_of_listing_names(report):
+    box = _read_first(_page(report))
+    items = re.findall(r"<li>(.*?)</li>", box, re.S)
+    assert items and len(items) <= 8
+    for li in items:
+        words = html.unescape(re.sub(r"<[^>]+>", "", li))
+        assert len(words) < 300, words
+        assert not re.search(r"\bS\d\d [A-Z]+\d*:", words), words  # no "S01 RT: k_c" lists
+    weighting = [li for li in items if "weighting" in li]
+    assert all('href="#weighting"' in li for li in weighting)
+
+
+def test_no_program_notation_in_the_visible_text(report):
+    text = _visible(_page(report))
+    for leak in (r"\{", r"\[", r"(?<![\w'])'[^'\n]+'(?!\w)", "_", r"\de[-+]\d"):
+        m = re.search(leak, text)
+        assert m is None, (leak, text[max(m.start() - 80, 0) : m.end() + 80])
+    # value ± SEM: both to the same decimals
+    pairs = re.findall(r"(?<![\d.])(\d+(?:\.\d+)?) ± (\d+(?:\.\d+)?)(?![\d.])", text)
+    assert len(pairs) > 20
+    for v, s in pairs:
+        assert len(v.partition(".")[2]) == len(s.partition(".")[2]), (v, s)
+    assert "de Caigny" in text and "trials, subjects and conditions:" in text
+
+
+def _conditions_in(cells: list[str]) -> list[str]:
+    names = [html.unescape(re.sub(r"<[^>]+>", "", c)).strip() for c in cells]
+    return [n for n in names if n in CONDS]
+
+
+def test_every_table_lists_the_conditions_in_the_protocol_order(report):
+    page = _page(report)
+    tables = re.findall(r"<table.*?</table>", page, re.S)
+    checked = 0
+    for t in tables:
+        head = re.search(r"<thead>(.*?)</thead>", t, re.S).group(1)
+        across = _conditions_in(re.findall(r"<th[^>]*>(.*?)</th>", head, re.S))
+        body = re.search(r"<tbody>(.*?)</tbody>", t, re.S).group(1)
+        down = _conditions_in(
+            [m.group(1) for m in re.finditer(r"<tr><td[^>]*>(.*?)</td>", body, re.S)]
+        )
+        for seq in (across, down):
+            if len(set(seq)) > 1:
+                checked += 1
+                assert seq == sorted(seq, key=CONDS.index), seq
+    assert checked >= 8
+
+
+def test_figures_list_the_conditions_in_the_protocol_order(report):
+    """The results keep the operating points by μ; legends follow the protocol's order."""
+    import dataclasses
+
+    from steerlab.analysis import figures as F
+
+    res = report[0].results
+    shuffled = dataclasses.replace(res, points=list(reversed(res.points)))
+    for make in (F.lpv_parameters, F.lpv_responses):
+        labels = make(shuffled).axes[0].get_legend_handles_labels()[1]
+        seq = [lab.split()[0] for lab in labels if lab.split()[0] in CONDS]
+        assert len(seq) >= 5 and seq == sorted(seq, key=CONDS.index), (make.__name__, seq)
+
+
+def test_pairwise_tests_are_one_table_with_the_matrices_collapsed_at_the_end(report):
+    page = _page(report)
+    start = page.index('id="pairwise"')
+    section = page[start : page.index("<h2", start + 10)]
+    assert section.count("<table") == 1
+    rows = re.findall(r"<tr><td", section)
+    assert len(rows) == 7  # one per tested quantity
+    details = page.index('<details id="pairwise-matrices"')
+    assert page.index('id="provenance"') < details
+    assert page[details:].count("<table") == 7 and "<details open" not in page
+
+
+def test_familiarization_trials_are_excluded_by_design_not_skipped(report):
+    page = _page(report)
+    n_fam = N_SUBJECTS * 6
+    assert f"Familiarization trials ({n_fam}), not analysed by design" in page
+    assert "Skipped trials (1)</h2>" in page  # the aborted one, with its reason
+    assert f"Skipped trials ({n_fam + 1})" not in page
+    head = _visible(page)[:600]
+    assert "skipped" not in head or "1 skipped" in head
+
+
+def test_index_html_refers_to_nothing_outside_itself(report):
+    page = _page(report)
+    assert all(h.startswith("#") for h in re.findall(r'href="([^"]*)"', page))
+    assert all(s.startswith("data:image/png;base64,") for s in re.findall(r'src="([^"]*)"', page))
+    assert len(list(report[0].out_dir.glob("*.html"))) == 1
+
+
+@pytest.fixture(scope="module")
+def one_trial_report(study_dir, tmp_path_factory):
+    """A study of one measured trial: S01's first BT12 repetition, nothing else."""
+    d = tmp_path_factory.mktemp("one_trial") / "sessions"
+    d.mkdir()
+    shutil.copy(study_dir / "S01.h5", d / "S01.h5")
+    with h5py.File(d / "S01.h5", "r+") as f:
+        keep = next(
+            k
+            for k, g in f["trials"].items()
+            if g.attrs["condition"] == "BT12" and not bool(g.attrs.get("familiarization", False))
+        )
+        for k in [k for k in f["trials"] if k != keep]:
+            del f["trials"][k]
+    out = tmp_path_factory.mktemp("one_trial_out") / "report"
+    return write_report(d, out, figures=False, options=AnalysisOptions(compare_weightings=False))
+
+
+def test_a_part_that_could_not_be_built_is_named_at_the_top_with_why(one_trial_report):
+    page = one_trial_report.index_html.read_text(encoding="utf-8")
+    box = html.unescape(re.sub(r"<[^>]+>", "", _read_first(page)))
+    assert "LPV model could not be built" in box
+    assert "at least 3 operating points" in box and "BT12" in box
+    assert "could not be checked" in box  # the checks that need more conditions
+    assert "order –" not in page and "– left out" not in page
+    assert re.search(r"LPV.*not built: a polynomial of order 2", _visible(page))
