@@ -94,6 +94,12 @@ RIG_JSON = "rig.json"
 INDEX_HTML = "index.html"
 FIGURE = "fit.png"
 REQUIRED_COLUMNS = ("time_s", "perturbation_torque_Nm", "wheel_angle_rad")
+HANDS_COLUMNS = ("driver_torque_Nm", "grip_force_N")  # read when present: hands on the wheel?
+# Hands on the wheel. With nobody touching it the column sensor reads its noise alone (the
+# simulated rig: 1 % of the perturbation's SD; a held wheel: 60 %) and a glove nobody wears
+# reads about 0 N (the simulated one 0.6 N; a light grip is 10 N or more).
+HANDS_ON_TORQUE_SHARE = 0.10  # driver torque SD ≥ this × the perturbation's SD
+HANDS_ON_GRIP_N = 5.0  # mean grip force ≥ this
 FORMAT = "steerlab-rig-check"
 FORMAT_VERSION = 1
 
@@ -176,6 +182,8 @@ class Recording:
     angle_rad: np.ndarray
     velocity_rad_s: np.ndarray | None = None
     motor_command_Nm: np.ndarray | None = None
+    driver_torque_Nm: np.ndarray | None = None  # NaN where a CSV cell is not a number
+    grip_force_N: np.ndarray | None = None
     max_torque_nm: float | None = None
     loop_rate_hz: float | None = None  # a Steerlab recording: samples are the loop's cycles
     nominal: Nominal | None = None
@@ -191,7 +199,7 @@ def read_recording(path: str | Path, trial: str | None = None) -> Recording:
     interchange-format CSV."""
     p = Path(path)
     if not p.exists():
-        raise RigCheckError(f"{p}: no such file")
+        raise RigCheckError(f"no such file: {p}")
     if p.suffix.lower() in (".h5", ".hdf5"):
         return _read_session(p, trial)
     return _read_csv(p)
@@ -228,14 +236,31 @@ def _read_csv(p: Path) -> Recording:
             if not math.isfinite(v):
                 raise RigCheckError(f"{p}: row {i + 2}, column {c}: not finite: {row[j]!r}")
             data[c][i] = v
+    # Not needed by the fit, only to tell whether hands were on the wheel: read leniently.
+    hands = {}
+    for c in HANDS_COLUMNS:
+        if c in header:
+            j = header.index(c)
+            hands[c] = np.array(
+                [_number_or_nan(row[j] if j < len(row) else "") for row in rows[1:]]
+            )
     return Recording(
         source=str(p),
         time_s=data["time_s"],
         perturbation_Nm=data["perturbation_torque_Nm"],
         angle_rad=data["wheel_angle_rad"],
         velocity_rad_s=data.get("wheel_velocity_rad_s"),
+        driver_torque_Nm=hands.get("driver_torque_Nm"),
+        grip_force_N=hands.get("grip_force_N"),
         first_row=2,
     )
+
+
+def _number_or_nan(cell: str) -> float:
+    try:
+        return float(cell)
+    except ValueError:
+        return math.nan
 
 
 def _read_session(p: Path, trial: str | None) -> Recording:
@@ -299,6 +324,8 @@ def _read_session(p: Path, trial: str | None) -> Recording:
             angle_rad=read_channel(g["wheel_angle_rad"]),  # counts × scale_factor, if counts
             velocity_rad_s=opt("wheel_velocity_rad_s"),
             motor_command_Nm=opt("motor_command_Nm"),
+            driver_torque_Nm=opt("driver_torque_Nm"),
+            grip_force_N=opt("grip_force_N"),
             max_torque_nm=float(max_t) if max_t else None,
             loop_rate_hz=float(fs) if fs else None,
             nominal=nominal,
@@ -332,6 +359,7 @@ class Prepared:
     hold_s: float  # the model's hold interval, s
     loop: bool  # True: a Steerlab loop recording, one hold per sample (zero-order hold)
     notes: list[str]
+    warnings: list[str] = field(default_factory=list)  # the recording may not be hands off
 
     @property
     def mask(self) -> np.ndarray:
@@ -466,7 +494,47 @@ def prepare(rec: Recording) -> Prepared:
         )
     hold = dt if loop else dt / max(1, math.ceil(dt / MAX_HOLD_S - 1e-9))
     om = None if rec.velocity_rad_s is None else np.asarray(rec.velocity_rad_s, float)
-    return Prepared(src, t, tp, th, om, segs, dt, hold, loop, notes)
+    warnings = hands_on_evidence(rec, m, sd_tp)
+    return Prepared(src, t, tp, th, om, segs, dt, hold, loop, notes, warnings)
+
+
+def hands_on_evidence(rec: Recording, mask: np.ndarray, sd_tp: float) -> list[str]:
+    """Why the recording may not be hands off (empty: no sign of hands). The model has no arm:
+    fitted to a held wheel, its values are the wheel and the arm together, not the rig's."""
+    out = []
+    if rec.attrs and not bool(rec.attrs.get("hands_off", False)):  # a session file's trial
+        out.append(
+            f"hands on the wheel? the trial is not a hands-off trial (condition "
+            f"{rec.attrs.get('condition', '?')!s}; its attribute hands_off is not true)"
+        )
+    td = _finite(rec.driver_torque_Nm, mask)
+    if td is not None and len(td) > 1 and sd_tp > 0:
+        share = float(np.std(td)) / sd_tp
+        if share >= HANDS_ON_TORQUE_SHARE:
+            out.append(
+                f"hands on the wheel? driver_torque_Nm varies by {np.std(td):.3g} N·m (SD), "
+                f"{share:.0%} of the perturbation's {sd_tp:.3g} N·m; with nobody touching the "
+                f"wheel it reads its noise alone (below {HANDS_ON_TORQUE_SHARE:.0%})"
+            )
+    grip = _finite(rec.grip_force_N, mask)
+    if grip is not None and len(grip) and float(np.mean(grip)) >= HANDS_ON_GRIP_N:
+        out.append(
+            f"hands on the wheel? grip_force_N averages {np.mean(grip):.3g} N; a glove that holds "
+            f"nothing reads about 0 (below {HANDS_ON_GRIP_N:g} N)"
+        )
+    if out:
+        out.append(
+            "the model has no arm in it: fitted to a held wheel, its values are those of the "
+            "wheel and the arm together, not the rig's; record again with the hands off"
+        )
+    return out
+
+
+def _finite(x: np.ndarray | None, mask: np.ndarray) -> np.ndarray | None:
+    if x is None or len(x) != len(mask):
+        return None
+    x = np.asarray(x, float)[mask]
+    return x[np.isfinite(x)]
 
 
 # -- the model ------------------------------------------------------------------------------
@@ -787,6 +855,26 @@ def verdict(fit: RigFit, tol: Tolerances) -> list[Check]:
     return out
 
 
+def fit_warnings(fit: RigFit, checks: list[Check]) -> list[str]:
+    """What makes the result unfit for use: signs of hands on the wheel, and values the
+    recording does not determine (an SEM larger than the value itself and than the tolerance
+    it is judged against: a value near zero may carry an SEM up to its tolerance, as a clear
+    "no friction" does)."""
+    out = list(fit.prep.warnings)
+    for c in checks:
+        sem = fit.sem.get(c.name)
+        if sem is None:
+            continue
+        if sem > abs(c.value) and sem > c.limit:
+            unit = UNITS[c.name]
+            out.append(
+                f"{LABELS[c.name]}: its SEM ({sem:.2g} {unit}) exceeds the value itself "
+                f"({c.value:.3g} {unit}) and the tolerance ({c.limit:.3g} {unit}): the recording "
+                "does not determine it, and its verdict means nothing"
+            )
+    return out
+
+
 # -- output --------------------------------------------------------------------------------------
 def _figure(fit: RigFit, path: Path) -> None:
     import matplotlib
@@ -841,11 +929,26 @@ def _html(fit: RigFit, checks: list[Check], tol_source: str) -> str:
             f"<td>{html.escape(c.rule)}</td><td class={'ok' if c.passed else 'bad'}>"
             f"{'pass' if c.passed else 'FAIL'}</td></tr>"
         )
-    notes = "".join(f"<li>{html.escape(s)}</li>" for s in fit.prep.notes) or "<li>none</li>"
+    warned = fit_warnings(fit, checks)
+    notes = (
+        "".join(
+            [f"<li class=bad>warning: {html.escape(s)}</li>" for s in warned]
+            + [f"<li>{html.escape(s)}</li>" for s in fit.prep.notes]
+        )
+        or "<li>none</li>"
+    )
+    warning_box = (
+        "<h2 class=bad>Warnings</h2><ul>"
+        + "".join(f"<li>{html.escape(s)}</li>" for s in warned)
+        + "</ul>"
+        if warned
+        else ""
+    )
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>Rig check</title>
 <style>body{{font-family:sans-serif;max-width:62em;margin:2em auto}}td,th{{padding:.2em .7em;
 text-align:left}}.ok{{color:#070}}.bad{{color:#b00;font-weight:bold}}</style></head><body>
 <h1>Rig check: <span class={"ok" if ok else "bad"}>{"PASS" if ok else "FAIL"}</span></h1>
+{warning_box}
 <p>Recording: <code>{html.escape(fit.source)}</code>.
 Nominal wheel: {html.escape(fit.nominal.source)}. Tolerances: {html.escape(tol_source)}.</p>
 <p>Model: I·ω' = lag<sub>τ</sub>(T<sub>p</sub> − b·ω − k·θ) + T<sub>0</sub>
@@ -879,6 +982,7 @@ def write_outputs(
         "tolerances_source": tol_source,
         "checks": [c.__dict__ for c in checks],
     }
+    d["warnings"] = fit_warnings(fit, checks)
     _atomic(out / RIG_JSON, json.dumps(d, indent=2, allow_nan=False, default=_plain))
     fig_tmp = out / f".{FIGURE}.tmp.png"
     _figure(fit, fig_tmp)
@@ -1027,6 +1131,7 @@ def summary(fit: RigFit, checks: list[Check]) -> str:
     lines.append(f"  {'VAF':<22} {fit.vaf_percent:.4f} %")
     failed = [c.name for c in checks if not c.passed]
     lines.append("verdict: " + ("PASS" if not failed else "FAIL (" + ", ".join(failed) + ")"))
+    lines += [f"warning: {w}" for w in fit_warnings(fit, checks)]
     return "\n".join(lines)
 
 

@@ -100,7 +100,7 @@ def _cmd_export(a: argparse.Namespace) -> int:
 def _cmd_import(a: argparse.Namespace) -> int:
     from steerlab.protocols.interchange import import_study
 
-    paths = import_study(a.csvdir, a.out, overwrite=a.overwrite)
+    paths = import_study(a.csvdir, a.out, overwrite=a.overwrite, require_period=True)
     print(f"imported into {len(paths)} session file(s) in {a.out}")
     return 0
 
@@ -113,7 +113,7 @@ def _cmd_report(a: argparse.Namespace) -> int:
     try:
         fit = FitOptions(weighting=a.weighting, inertia=a.inertia, I_i=a.inertia_value)
     except ValueError as e:
-        print(f"steerlab report: {e}", file=sys.stderr)
+        print(f"steerlab report: error: argument --inertia-value: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
     from steerlab.analysis.executors import executor_for
 
@@ -142,6 +142,7 @@ def _cmd_run(a: argparse.Namespace) -> int:
         protocol_path=a.protocol,
         breaks=not a.no_breaks,
         rig_check=a.rig_check,
+        on_abort=a.on_abort,
     )
     return 0 if state is State.DONE else 3
 
@@ -186,6 +187,53 @@ def _cmd_gui(a: argparse.Namespace) -> int:
     return run_gui(rig=a.rig, out=a.out, protocol=a.protocol)
 
 
+def _whole_number(low: int):
+    """An argparse type: a whole number ≥ ``low`` (argparse names the option in its error)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"must be a whole number ≥ {low}, got {text!r}"
+            ) from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be a whole number ≥ {low}, got {value}")
+        return value
+
+    parse.__name__ = f"whole number ≥ {low}"
+    return parse
+
+
+def _positive_number(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+COUNT = _whole_number(1)  # --subjects, --jobs, --periods, subject numbers
+SEED = _whole_number(0)
+
+
+def _subparser(sub, name: str, help: str, description: str, example: str):
+    """A subcommand with its one-line help, a description and examples in the epilog (kept as
+    written: the raw formatter does not wrap, so the description is wrapped here)."""
+    import textwrap
+
+    return sub.add_parser(
+        name,
+        help=help,
+        description=textwrap.fill(description, 88),
+        epilog="example:\n" + example,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+
+
 SCHEDULER_HELP = (
     "run the parallel work on Dask (pip install 'steerlab[dask]'): a scheduler's address "
     "(tcp://HOST:8786), a scheduler file, or local[:N] for a LocalCluster of N workers"
@@ -203,24 +251,46 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"steerlab {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
-    s = sub.add_parser("simulate", help="run the protocol for N simulated subjects")
-    s.add_argument("--subjects", type=int, required=True, help="number of simulated subjects")
+    s = _subparser(
+        sub,
+        "simulate",
+        "run the protocol for N simulated subjects",
+        "Run the protocol for N simulated subjects through the engine and the simulated rig: one "
+        "session file (S01.h5 …) per subject.",
+        "  steerlab simulate --subjects 18 --out sessions/demo --overwrite\n"
+        "  steerlab simulate --subjects 2 --out sessions/drive --protocol driving.toml\n\n"
+        "--subjects N is how many subjects (S01 … SNN); steerlab run --subject N says which one\n"
+        "subject a session on a rig is.",
+    )
+    s.add_argument("--subjects", type=COUNT, required=True, metavar="N",
+                   help="how many simulated subjects, S01 … SNN (≥ 1); not which one: that is "
+                   "run --subject")  # fmt: skip
     s.add_argument("--out", required=True, help="directory for the session files")
-    s.add_argument("--seed", type=int, default=0, help="population and noise seed (default 0)")
+    s.add_argument("--seed", type=SEED, default=0, help="population and noise seed, ≥ 0 "
+                   "(default 0)")  # fmt: skip
     s.add_argument("--protocol", help="protocol TOML (default: the paper's protocol)")
     s.add_argument("--realtime", action="store_true", help="pace at wall-clock speed")
     g = s.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true", help="complete existing session files")
     g.add_argument("--overwrite", action="store_true", help="replace existing session files")
-    s.add_argument("--jobs", type=int, default=None, help="worker processes (default: cores)")
+    s.add_argument("--jobs", type=COUNT, default=None, help="worker processes, ≥ 1 (default: "
+                   "cores)")  # fmt: skip
     s.add_argument("--model", help="extended world model (model.toml from steerlab diagnose)")
     s.add_argument("--rig-model", help="rig.json of steerlab rig-check: simulate the measured "
                    "wheel instead of the nominal one")  # fmt: skip
     s.set_defaults(func=_cmd_simulate)
 
-    e = sub.add_parser("export", help="session files → trial interchange CSV + JSON")
-    e.add_argument("dir")
-    e.add_argument("--out", required=True)
+    e = _subparser(
+        sub,
+        "export",
+        "session files → trial interchange CSV + JSON",
+        "Write every trial of the session files in DIR in the trial interchange format: a CSV "
+        "and a JSON per trial (docs/data-format.md). Damaged trials are left out and named.",
+        "  steerlab export sessions/demo --out exported/demo",
+    )
+    e.add_argument("dir", metavar="DIR", help="folder of session files (*.h5)")
+    e.add_argument("--out", required=True, help="folder for the CSV + JSON files (absent or "
+                   "empty, unless --overwrite)")  # fmt: skip
     e.add_argument(
         "--overwrite", action="store_true", help="replace --out if it exists and is not empty"
     )
@@ -232,18 +302,37 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.set_defaults(func=_cmd_export)
 
-    i = sub.add_parser("import", help="trial interchange CSV + JSON → session files")
-    i.add_argument("csvdir")
-    i.add_argument("--out", required=True)
-    i.add_argument("--overwrite", action="store_true")
+    i = _subparser(
+        sub,
+        "import",
+        "trial interchange CSV + JSON → session files",
+        "Read trials in the interchange format (NAME.csv + NAME.json, any rate ≥ 100 Hz, any "
+        "start phase) and write one session file per subject. Nothing is written unless every "
+        "trial is good (docs/data-format.md).",
+        "  steerlab import exported/demo --out sessions/imported",
+    )
+    i.add_argument("csvdir", metavar="CSVDIR", help="folder of trials: NAME.csv + NAME.json each")
+    i.add_argument("--out", required=True, help="folder for the session files (SUBJECT.h5)")
+    i.add_argument("--overwrite", action="store_true", help="replace session files that exist "
+                   "in --out")  # fmt: skip
     i.set_defaults(func=_cmd_import)
 
-    r = sub.add_parser("report", help="analyse a study and write the report")
-    r.add_argument("dir")
-    r.add_argument("--out", required=True)
+    r = _subparser(
+        sub,
+        "report",
+        "analyse a study and write the report",
+        "Analyse the session files in DIR: admittance per subject and condition, the arm-model "
+        "fits, the grip-scheduled LPV model, the statistics; writes index.html, results.json "
+        "and per_subject.csv.",
+        "  steerlab report sessions/demo --out reports/demo\n"
+        "  steerlab report sessions/demo --out reports/paper --weighting paper --jobs 2",
+    )
+    r.add_argument("dir", metavar="DIR", help="folder of session files (*.h5)")
+    r.add_argument("--out", required=True, help="folder for the report (index.html, "
+                   "results.json, per_subject.csv)")  # fmt: skip
     r.add_argument(
         "--jobs",
-        type=int,
+        type=COUNT,
         default=None,
         help="worker processes for the trials and the subjects' fits (default: the CPU count, "
         "at most 4)",
@@ -265,7 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument(
         "--inertia-value",
-        type=float,
+        type=_positive_number,
         default=0.1,
         help="I_i in kg·m² when --inertia fixed (default 0.1)",
     )
@@ -276,18 +365,40 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.set_defaults(func=_cmd_report)
 
-    n = sub.add_parser("run", help="run one subject's session on a rig, in real time")
+    n = _subparser(
+        sub,
+        "run",
+        "run one subject's session on a rig, in real time",
+        "Run one subject's session on a rig in real time (the simulated rig by default), with "
+        "pause, abort, redo and resume; Ctrl-C or Enter is an emergency stop.",
+        "  steerlab run --subject 3 --out sessions\n"
+        "  steerlab run --rig RIG.toml --subject 3 --out sessions --resume",
+    )
     n.add_argument("--rig", help="rig configuration TOML (default: the simulated rig)")
-    n.add_argument("--subject", type=int, required=True, help="subject number (from 1)")
+    n.add_argument("--subject", type=COUNT, required=True, metavar="N", help="which subject: "
+                   "its number, from 1 (3: S03); not how many (simulate --subjects)")  # fmt: skip
     n.add_argument("--out", default="sessions", help="data root (default: sessions/)")
     n.add_argument("--resume", action="store_true", help="continue an interrupted session")
     n.add_argument("--protocol", help="protocol TOML (default: the paper's protocol)")
     n.add_argument("--no-breaks", action="store_true", help="skip the protocol's breaks")
     n.add_argument("--rig-check", help="rig.json of the rig's last rig check, recorded in the "
                    "session file")  # fmt: skip
+    n.add_argument("--on-abort", choices=("ask", "redo", "next", "stop"), help="after a trial "
+                   "a fault aborted: ask (default when stdin is a terminal), redo it, go on to "
+                   "the next (it is run again after the others), or stop the session (default "
+                   "otherwise); an emergency stop always ends the session")  # fmt: skip
     n.set_defaults(func=_cmd_run)
 
-    c = sub.add_parser("rig-check", help="measure the wheel the rig renders (hands off)")
+    c = _subparser(
+        sub,
+        "rig-check",
+        "measure the wheel the rig renders (hands off)",
+        "Measure the wheel the rig really renders (inertia, damping, stiffness, friction, "
+        "imbalance, actuator lag, with SEMs) from a hands-off trial or a recording, and judge "
+        "it against the rig file's tolerances (docs/rig-check.md).",
+        "  steerlab rig-check --rig RIG.toml --out rigcheck/today\n"
+        "  steerlab rig-check --recording rigcheck/today/rigcheck.h5 --out rigcheck/again",
+    )
     c.add_argument("--rig", help="rig configuration TOML (default: the simulated rig); its "
                    "[rig_check] table sets the tolerances")  # fmt: skip
     c.add_argument("--out", required=True, help="directory for rig.json, index.html (and the "
@@ -297,21 +408,38 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--trial", help="with a session file: the trial group (default: its latest "
                    "complete hands-off trial)")  # fmt: skip
     c.add_argument("--protocol", help="protocol TOML: loop rate and nominal wheel")
-    c.add_argument("--periods", type=int, help="perturbation periods of 10 s (default 3)")
+    c.add_argument("--periods", type=COUNT, help="perturbation periods of 10 s, ≥ 1 (default 3)")
     c.add_argument("--overwrite", action="store_true", help="replace DIR/rigcheck.h5")
     c.set_defaults(func=_cmd_rig_check)
 
-    t = sub.add_parser("stop", help="emergency stop of the session running in --out")
-    t.add_argument("--out", default="sessions")
-    t.add_argument("--subject", type=int, help="the session's subject number (needed when "
+    t = _subparser(
+        sub,
+        "stop",
+        "emergency stop of the session running in --out",
+        "Emergency stop of the session running in a data folder, as Ctrl-C or Enter in its "
+        "terminal.",
+        "  steerlab stop --out sessions --subject 3",
+    )
+    t.add_argument("--out", default="sessions", help="the data root the session writes to "
+                   "(default: sessions/)")  # fmt: skip
+    t.add_argument("--subject", type=COUNT, help="the session's subject number (needed when "
                    "several sessions run in --out)")  # fmt: skip
     t.add_argument("--rig", help="the session's rig file, as given to steerlab run")
     t.set_defaults(func=_cmd_stop)
 
-    d = sub.add_parser("diagnose", help="find what the simulation gets wrong on measured data")
-    d.add_argument("dir")
-    d.add_argument("--out", required=True)
-    d.add_argument("--jobs", type=int, default=None, help="worker processes for the "
+    d = _subparser(
+        sub,
+        "diagnose",
+        "find what the simulation gets wrong on measured data",
+        "Compare the simulation with measured session files: where they depart, which "
+        "mechanism explains it, and the extended model (docs/diagnosis.md).",
+        "  steerlab diagnose sessions/lab --out diagnosis/lab\n"
+        "  steerlab diagnose sessions/lab --out diagnosis/lab --rig-model rigcheck/today/rig.json",
+    )
+    d.add_argument("dir", metavar="DIR", help="folder of measured session files (*.h5)")
+    d.add_argument("--out", required=True, help="folder for the diagnosis (index.html, "
+                   "diagnosis.json, model.toml)")  # fmt: skip
+    d.add_argument("--jobs", type=COUNT, default=None, help="worker processes for the "
                    "candidates' fits (default: cores, at most 4)")  # fmt: skip
     d.add_argument("--scheduler", help=SCHEDULER_HELP)
     d.add_argument("--model", help="model.toml of an earlier diagnosis: its mechanisms become "
@@ -324,7 +452,13 @@ def build_parser() -> argparse.ArgumentParser:
                    "even if the session files record a measured one")  # fmt: skip
     d.set_defaults(func=_cmd_diagnose)
 
-    u = sub.add_parser("gui", help="experimenter GUI and subject dashboard")
+    u = _subparser(
+        sub,
+        "gui",
+        "experimenter GUI and subject dashboard",
+        "Open the experimenter's window and, on the subject's screen, the dashboard (docs/gui.md).",
+        "  steerlab gui\n  steerlab gui --rig RIG.toml --out sessions",
+    )
     u.add_argument("--rig", help="rig configuration TOML (default: the simulated rig)")
     u.add_argument("--out", default="sessions", help="data root (default: sessions/)")
     u.add_argument("--protocol", help="protocol TOML (default: the paper's protocol)")
@@ -336,6 +470,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from steerlab.app.errors import is_user_error
 
+    for folder in (getattr(args, "dir", None), getattr(args, "csvdir", None)):
+        if folder is not None and not Path(folder).exists():
+            print(f"steerlab {args.command}: error: no such folder: {folder}", file=sys.stderr)
+            return EXIT_BAD_INPUT
     try:
         return args.func(args)
     except KeyboardInterrupt:

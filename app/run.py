@@ -7,18 +7,32 @@ Emergency stop, whatever the rig:
   session's process, named in ``DIR/steerlab-run-SUBJECT.pid`` with its start time and command
   line, after checking in /proc that the process is still that session).
 Each stops the motor at once (zero torque, drive disabled), ends the trial as aborted with the
-reason, and keeps every recorded sample. Run again with ``--resume`` to continue.
+reason, keeps every recorded sample, and ends the session. Run again with ``--resume`` to
+continue.
+
+A trial aborted by a fault (a stalled loop, a drive fault, the glove stream stopping, ...) does
+not end the session by itself: ``on_abort`` (``--on-abort``) says what follows. ``ask`` (the
+default when stdin is a terminal) shows the reason and asks "[r]edo the trial, [g]o on to the
+next, or [s]top the session?"; ``redo``, ``next`` and ``stop`` answer the same without asking
+(``stop`` is the default otherwise: scripts, tests). A redo is a new attempt of the trial; going
+on runs the aborted trial again after the others. The aborted attempt stays in the file, marked
+aborted, with every sample it recorded. Without a person to ask, :data:`MAX_ABORTS_IN_A_ROW`
+aborted trials in a row stop the session: a fault that persists must not abort trial after
+trial.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import queue
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 from steerlab.hardware.can.scaling import DriveScaling
 from steerlab.hardware.live import ProcessLoop
@@ -35,10 +49,19 @@ from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.events import StateChanged, TrialEnded, TrialStarted
 from steerlab.protocols.names import inside
 from steerlab.protocols.protocol import load_protocol
+from steerlab.protocols.records import STATUS_ABORTED
 from steerlab.protocols.session import build_plan, subject_id
 from steerlab.protocols.writelock import LockedError, WriterLock
 
 PIDFILE_GLOB = "steerlab-run-*.pid"
+
+#: What follows a trial aborted by a fault: ask the experimenter, or redo, next, stop unasked.
+ON_ABORT = ("ask", "redo", "next", "stop")
+#: Without a person to ask (``--on-abort redo`` or ``next``), this many aborted trials in a row
+#: stop the session.
+MAX_ABORTS_IN_A_ROW = 3
+ABORT_PROMPT = "[r]edo the trial, [g]o on to the next, or [s]top the session?"
+_ANSWERS = {"r": "redo", "redo": "redo", "g": "next", "go": "next", "s": "stop", "stop": "stop"}
 
 
 def pidfile_path(out_dir: str | Path, subject: str) -> Path:
@@ -144,9 +167,21 @@ def run_session(
     breaks: bool = True,
     say=print,
     rig_check: str | None = None,
+    on_abort: str | None = None,
 ) -> State:
+    """Run the session; its final state (DONE when every trial is complete).
+
+    ``on_abort``: one of :data:`ON_ABORT` (the module docstring); None: ``ask`` when stdin is a
+    terminal, else ``stop``."""
     if subject_number < 1:
         raise RunError(f"--subject must be ≥ 1, got {subject_number}")
+    interactive = sys.stdin is not None and sys.stdin.isatty()
+    if on_abort is None:
+        on_abort = "ask" if interactive else "stop"
+    if on_abort not in ON_ABORT:
+        raise RunError(f"--on-abort must be one of {', '.join(ON_ABORT)}, not {on_abort!r}")
+    if on_abort == "ask" and not interactive:
+        raise RunError("--on-abort ask needs a terminal on stdin to ask in; use redo, next or stop")
     protocol = load_protocol(protocol_path)
     rig = load_rig(rig_path)
     if abs(protocol.loop_rate_hz - rig.loop_rate_hz) > 1e-9:
@@ -189,7 +224,7 @@ def run_session(
         try:
             return _run(
                 me, rig, rig_path, subject_number, plan, path, attempts, breaks, say, lock,
-                last_check,
+                last_check, on_abort,
             )  # fmt: skip
         finally:
             _release(me)
@@ -198,19 +233,22 @@ def run_session(
 
 
 def _run(
-    me, rig, rig_path, subject_number, plan, path, attempts, breaks, say, lock, last_check
-) -> State:
+    me, rig, rig_path, subject_number, plan, path, attempts, breaks, say, lock, last_check,
+    on_abort,
+) -> State:  # fmt: skip
     # The stop signals act from now on (a stop during the rig's bring-up ends the session before
     # its first trial), not only once the engine runs.
     holder: dict = {}
 
-    def on_signal(signum, _frame):
-        reason = f"emergency stop ({signal.Signals(signum).name})"
+    def emergency_stop(reason: str) -> None:
+        # Whenever it comes (a trial, a break, the question after an abort): the session ends.
+        holder["stopped"] = reason
         engine = holder.get("engine")
-        if engine is None:
-            holder["stopped"] = reason
-        else:
+        if engine is not None:
             engine.emergency_stop(reason)
+
+    def on_signal(signum, _frame):
+        emergency_stop(f"emergency stop ({signal.Signals(signum).name})")
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGUSR1)}
     loop = writer = None
@@ -236,10 +274,12 @@ def _run(
         if "stopped" in holder:
             say(f"{holder['stopped']} before the first trial")
             return State.IDLE
+        terminal = None
         if sys.stdin is not None and sys.stdin.isatty():
-            threading.Thread(target=_keyboard, args=(engine,), daemon=True).start()
+            terminal = Terminal(sys.stdin, lambda: emergency_stop("emergency stop (keyboard)"))
+            terminal.start()
             say("press Enter (or Ctrl-C) for an emergency stop")
-        state = engine.run()
+        state = _walk(engine, on_abort, terminal, lambda: holder.get("stopped"), say)
     finally:
         # The pid file goes before the stop signals stop being ours: a `steerlab stop` that
         # finds it must not kill this process with SIGUSR1's default action.
@@ -258,9 +298,103 @@ def _run(
     return state
 
 
-def _keyboard(engine: SessionEngine) -> None:
-    for _line in sys.stdin:
-        engine.emergency_stop("emergency stop (keyboard)")
+def _walk(
+    engine: SessionEngine,
+    on_abort: str,
+    terminal: Terminal | None,
+    stopped: Callable[[], str | None],
+    say: Callable[[str], object],
+) -> State:
+    """Run the engine's trials; after a trial aborted by a fault, redo it, go on or stop, as
+    ``on_abort`` says (``ask``: as the experimenter answers on ``terminal``)."""
+    ends: list[TrialEnded] = []
+    engine.subscribe(lambda e: ends.append(e) if isinstance(e, TrialEnded) else None)
+    in_a_row = 0
+    while True:
+        ends.clear()
+        state = engine.run()
+        if state is not State.IDLE or stopped() is not None or not ends:
+            return state  # done, broken, or stopped by a person
+        last = ends[-1]
+        if last.status != STATUS_ABORTED:
+            return state
+        in_a_row = 0 if any(e.status != STATUS_ABORTED for e in ends) else in_a_row
+        in_a_row += 1
+        if on_abort == "ask":
+            assert terminal is not None  # run_session refuses ask without a terminal
+            say(f"trial {last.trial_index} ({last.key}) was aborted: {last.reason}")
+            choice = terminal.ask(ABORT_PROMPT, say, stopped)
+        elif on_abort != "stop" and in_a_row >= MAX_ABORTS_IN_A_ROW:
+            say(f"{in_a_row} trials aborted in a row: stopping the session (--on-abort {on_abort})")
+            choice = "stop"
+        else:
+            choice = on_abort
+        if choice == "stop" or stopped() is not None:
+            return state
+        if choice == "redo":
+            engine.redo(last.trial_index, "redo after an aborted trial")
+            say(f"redoing trial {last.trial_index} (a new attempt; the aborted one stays)")
+        else:
+            engine.defer(last.trial_index)
+            say(f"going on; trial {last.trial_index} is run again after the others")
+
+
+class Terminal:
+    """The session's one reader of its terminal. While trials run (breaks included) a line is
+    an emergency stop; while the experimenter is asked what to do after an aborted trial, lines
+    are answers. One reader for both: an answer is never taken for an emergency stop, and the
+    reader of one never eats the other."""
+
+    def __init__(self, stream: IO[str], on_stop: Callable[[], None]) -> None:
+        self.stream = stream
+        self.on_stop = on_stop
+        self._asking = threading.Event()
+        self._answers: queue.Queue[str] = queue.Queue()
+        self._closed = threading.Event()
+
+    def start(self) -> None:
+        threading.Thread(target=self._read, name="steerlab-terminal", daemon=True).start()
+
+    def _read(self) -> None:
+        try:
+            for line in self.stream:
+                if self._asking.is_set():
+                    self._answers.put(line.strip().lower())
+                else:
+                    self.on_stop()
+        except (OSError, ValueError):  # the terminal went away
+            pass
+        finally:
+            self._closed.set()
+
+    def ask(
+        self, prompt: str, say: Callable[[str], object], stopped: Callable[[], str | None]
+    ) -> str:
+        """``redo``, ``next`` or ``stop``, as answered; asked again until the answer is one
+        (an empty line, Enter as for an emergency stop, is not). ``stop`` when ``stopped()``
+        says a person stopped the session meanwhile, or when the terminal is gone."""
+        while not self._answers.empty():  # typed before the question: not an answer to it
+            self._answers.get_nowait()
+        self._asking.set()
+        try:
+            while True:
+                say(prompt)
+                while True:
+                    if stopped() is not None:
+                        return "stop"
+                    try:
+                        answer = self._answers.get(timeout=0.1)
+                        break
+                    except queue.Empty:
+                        if self._closed.is_set():
+                            say("no terminal to answer on: stopping the session")
+                            return "stop"
+                choice = _ANSWERS.get(answer)
+                if choice is not None:
+                    return choice
+                say(f"{answer!r}: please answer r, g or s")
+        finally:
+            self._asking.clear()
 
 
 def _reporter(say, n_trials: int):

@@ -190,6 +190,11 @@ def simulate_study(
     (inertia, rendered damping and stiffness, friction, imbalance, actuator lag)."""
     if n_subjects < 1:
         raise SimulateError(f"--subjects must be ≥ 1, got {n_subjects}")
+    # 0 would otherwise read as "not given" (the default) and a negative count as 1.
+    if jobs is not None and jobs < 1:
+        raise SimulateError(f"--jobs must be ≥ 1, got {jobs}")
+    if seed < 0:
+        raise SimulateError(f"--seed must be ≥ 0, got {seed}")
     protocol: Protocol = load_protocol(protocol_path)  # validates before anything is written
     out = Path(out_dir)
     subjects = [subject_id(i) for i in range(1, n_subjects + 1)]

@@ -109,6 +109,7 @@ class SessionEngine:
         self._stop_req: str | None = None
         self._control: LoopControl | None = None
         self._attempts = {k: list(v) for k, v in (attempts or {}).items()}
+        self._deferred: list[int] = []  # trial indices to run after the others, in this order
         self.current: TrialSetup | None = None
         self.last_error: BaseException | None = None
 
@@ -158,7 +159,11 @@ class SessionEngine:
         return self._state is State.PAUSED and self.current is None
 
     def pending(self) -> list[TrialSpec]:
-        return [t for t in self.plan.trials if self.status_of(t.trial_index) != "complete"]
+        """The trials without a complete attempt, in the order they run: the plan's, except
+        that deferred trials come after the others."""
+        todo = [t for t in self.plan.trials if self.status_of(t.trial_index) != "complete"]
+        later = [t for i in self._deferred for t in todo if t.trial_index == i]
+        return [t for t in todo if t.trial_index not in self._deferred] + later
 
     # -- requests from other threads ----------------------------------------------------------
     def pause(self) -> None:
@@ -205,8 +210,23 @@ class SessionEngine:
             self._attempts[trial_index] = [
                 (a, STATUS_SUPERSEDED if s == STATUS_COMPLETE else s) for a, s in att
             ]
+            if trial_index in self._deferred:  # a redo runs where the plan has it
+                self._deferred.remove(trial_index)
             if self._state is State.DONE:
                 self._transition(State.IDLE, "trial reopened for a redo")
+
+    def defer(self, trial_index: int) -> None:
+        """Run this trial after the other pending ones (going on from an aborted trial): the
+        next run starts at the next trial, and this one comes last. Its attempts stay as they
+        are recorded. Not while a trial runs."""
+        with self._lock:
+            busy = self._state in (State.RUNNING, State.PAUSED, State.ABORTING)
+            if busy and not self.waiting_for_start:
+                raise IllegalTransition(f"cannot defer a trial while {self._state.value}")
+            self.plan.trial(trial_index)  # an unknown index raises here
+            if trial_index in self._deferred:
+                self._deferred.remove(trial_index)
+            self._deferred.append(trial_index)
 
     def reset(self) -> None:
         """Leave BROKEN after a person has checked the rig."""

@@ -2,10 +2,11 @@
 
 CSV header starts with (in any order, extra columns allowed)
 ``time_s,perturbation_torque_Nm,driver_torque_Nm,wheel_angle_rad,grip_force_N``.
-JSON holds at least ``subject``, ``condition``, ``repetition``, ``fs_hz``, and where known
-``familiarization`` (bool) and ``trial_index`` (order in the session, a whole number ≥ 0), and
-optionally how the recording was made (``sample_timing``, ``torque_timing``,
-``wheel_rendering``: docs/data-format.md).
+JSON holds at least ``subject`` and ``condition`` (strings), ``repetition``, ``fs_hz``, and
+where known ``familiarization`` (bool) and ``trial_index`` (order in the session, a whole number
+≥ 0), and optionally how the recording was made (``sample_timing``, ``torque_timing``,
+``wheel_rendering``: docs/data-format.md). A condition must be one of a shipped protocol's, or
+of the session the trial was exported from, or declared (``condition_declared``: true).
 Sign convention: ``driver_torque_Nm`` is the torque the wheel exerts on the hands, so that
 S(Tp,θ)/S(Tp,Td) is positive at low frequency.
 
@@ -17,11 +18,14 @@ every input file is good.
 from __future__ import annotations
 
 import csv
+import difflib
+import functools
 import json
 import math
 import os
 import shutil
 import tempfile
+import tomllib
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -203,6 +207,10 @@ def _export_trial(
     cols = {c: getattr(rec, c) for c in CORE_CHANNELS}
     cols.update({k: v for k, v in rec.extra.items() if not (blind and k.startswith("true_"))})
     hidden = set(SIMULATION_TRUTH) if blind else set()
+    design = rec.design.to_dict() if rec.design is not None else None
+    if design is not None and not math.isfinite(design.get("crest_factor", 0.0)):
+        # Not known (a design imported without it): left out, as import reads its absence.
+        del design["crest_factor"]
     n = len(rec.time_s)
     text_cols = []
     dtypes = {}
@@ -237,7 +245,7 @@ def _export_trial(
         # again, so export → import gives back the same numbers.
         "dtypes": dtypes,
         "sign_conventions": SIGN_CONVENTIONS,
-        "perturbation_design": rec.design.to_dict() if rec.design is not None else None,
+        "perturbation_design": design,
         "source": rec.source,
         # Everything the session file held, so that import gives it all back.
         "marks": rec.attrs.get("marks", []),
@@ -333,10 +341,14 @@ def _read_meta(path: Path) -> dict:
         raise InterchangeError(
             f"{path}: field 'repetition' must be a whole number ≥ 0, got {rep!r}"
         )
-    for k in ("subject", "condition"):
+    for k, example in (("subject", "S01"), ("condition", "BT12")):
         v = meta[k]
-        if isinstance(v, int) and not isinstance(v, bool):
-            v = meta[k] = str(v)
+        # A number is refused, not turned into text: 1 and "S01" would name different
+        # subjects, and a condition 12 is no protocol's.
+        if not isinstance(v, str):
+            raise InterchangeError(
+                f'{path}: field {k!r} must be a string such as "{example}", got {v!r}'
+            )
         try:
             check_name(v, f"{path}: field {k!r}")
         except UnsafeNameError as e:
@@ -400,7 +412,54 @@ def _read_meta(path: Path) -> dict:
         )
     meta["_session_attributes"] = _attributes(meta, "session_attributes", path)
     meta["_trial_attributes"] = _attributes(meta, "trial_attributes", path)
+    _check_condition(meta, path)
     return meta
+
+
+@functools.cache
+def shipped_conditions() -> tuple[str, ...]:
+    """The conditions of every protocol shipped with Steerlab (``protocols/*.toml``), in file
+    order, each once."""
+    names: dict[str, None] = {}
+    for toml_path in sorted(Path(__file__).parent.glob("*.toml")):
+        with open(toml_path, "rb") as fh:
+            doc = tomllib.load(fh)
+        for c in doc.get("conditions", []):
+            names[str(c["name"])] = None
+    return tuple(names)
+
+
+def _check_condition(meta: dict, path: Path) -> None:
+    """A condition no protocol knows is most often a typo (BT13 for BT12, BT18): refused, unless
+    the trial declares it (``condition_declared``: true, here or among its exported trial
+    attributes) or the session it was exported from lists it (``condition_order``)."""
+    declared = meta.get("condition_declared", False)
+    if not isinstance(declared, bool):
+        raise InterchangeError(
+            f"{path}: field 'condition_declared' must be true or false, got {declared!r}"
+        )
+    # Stored in a session file as an HDF5 boolean (uint8), it comes back from an export as 1.
+    stored = meta["_trial_attributes"].get("condition_declared")
+    if declared or (isinstance(stored, bool | int) and stored == 1):
+        return
+    cond = meta["condition"]
+    order = meta["_session_attributes"].get("condition_order")
+    if isinstance(order, str):  # files of format version 1 hold it as JSON text
+        try:
+            order = json.loads(order)
+        except ValueError:
+            order = None
+    session = [str(c) for c in order] if isinstance(order, list | tuple | np.ndarray) else []
+    known = shipped_conditions()
+    if cond in known or cond in session:
+        return
+    close = difflib.get_close_matches(cond, known, n=3, cutoff=0.6)
+    hint = f" (did you mean {' or '.join(close)}?)" if close else ""
+    raise InterchangeError(
+        f"{path}: field 'condition': {cond!r} is not a condition of any Steerlab protocol"
+        f"{hint}; known: {', '.join(known)}. If it is a new condition, add "
+        '"condition_declared": true to the JSON'
+    )
 
 
 def _no_constant(path: Path):
@@ -542,7 +601,38 @@ _META_ONLY = {"units", "sign_conventions", "source", "dtypes", "marks", "trial_a
               "session_attributes", "perturbation_design"}  # fmt: skip
 
 
-def read_trial(csv_path: Path) -> TrialRecord:
+@functools.cache
+def default_period_s() -> float:
+    """The paper protocol's perturbation period: the analysis assumes it for a trial that
+    carries no ``perturbation_design``."""
+    with open(Path(__file__).parent / "pronker2017.toml", "rb") as fh:
+        return float(tomllib.load(fh)["perturbation"]["period_s"])
+
+
+def _check_length(csv_path: Path, meta: dict, n: int, fs: float) -> None:
+    """A complete trial shorter than one perturbation period has nothing the analysis can use:
+    refused here, with the numbers, rather than skipped later without them."""
+    design = meta.get("_design")
+    period = design.period_s if design is not None else default_period_s()
+    need = math.ceil(period * fs - 1e-9)
+    if n >= need:
+        return
+    whence = (
+        "its 'perturbation_design'"
+        if design is not None
+        else "the paper protocol's; a trial perturbed with another period says so in its "
+        "JSON's 'perturbation_design'"
+    )
+    raise InterchangeError(
+        f"{csv_path}: {n} data rows at {fs:g} Hz = {n / fs:.3g} s, shorter than one "
+        f"perturbation period: {period:g} s ({need} rows; the period is {whence}). Nothing of "
+        'it can be analysed; a trial that ended early has "status": "aborted" or "incomplete"'
+    )
+
+
+def read_trial(csv_path: Path, *, require_period: bool = False) -> TrialRecord:
+    """One trial from ``NAME.csv`` and ``NAME.json``. ``require_period``: refuse a complete
+    trial shorter than one perturbation period (``steerlab import`` does)."""
     meta_path = csv_path.with_suffix(".json")
     if not meta_path.exists():
         raise InterchangeError(f"{csv_path}: no metadata file {meta_path.name} beside it")
@@ -557,6 +647,8 @@ def read_trial(csv_path: Path) -> TrialRecord:
             f"{csv_path}: {n} data row(s); a complete trial needs at least {MIN_TRIAL_ROWS} "
             "(an aborted or incomplete one may have fewer)"
         )
+    if status == STATUS_COMPLETE and require_period:
+        _check_length(csv_path, meta, n, fs)
     # measured_start/stop may lie past the data: a trial stopped early keeps its planned
     # window (the analysis decides what a short trial is good for).
     start, stop = meta.get("measured_start"), meta.get("measured_stop")
@@ -590,16 +682,24 @@ def read_trial(csv_path: Path) -> TrialRecord:
 
 
 def import_study(
-    csv_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False
+    csv_dir: str | Path,
+    out_dir: str | Path,
+    *,
+    overwrite: bool = False,
+    require_period: bool = False,
 ) -> list[Path]:
-    """Read every NAME.csv + NAME.json; write one session file per subject into ``out_dir``."""
+    """Read every NAME.csv + NAME.json; write one session file per subject into ``out_dir``.
+    ``require_period``: as for :func:`read_trial`."""
     src = Path(csv_dir)
+    if not src.exists():
+        raise InterchangeError(f"no such folder: {src}")
     if not src.is_dir():
-        raise InterchangeError(f"{src}: not a directory")
+        raise InterchangeError(f"{src}: not a folder")
     csvs = sorted(src.glob("*.csv"))
     if not csvs:
         raise InterchangeError(f"{src}: no trial files (*.csv)")
-    records = [read_trial(p) for p in csvs]  # every input checked before anything is written
+    # Every input is checked before anything is written.
+    records = [read_trial(p, require_period=require_period) for p in csvs]
     by_subject: dict[str, list[TrialRecord]] = {}
     for r in records:
         by_subject.setdefault(r.subject, []).append(r)

@@ -27,7 +27,16 @@ from steerlab.protocols.protocol import ProtocolError, parse_protocol
 from tests.helpers import edit, fast_protocol_text
 
 HEADER = "time_s,perturbation_torque_Nm,driver_torque_Nm,wheel_angle_rad,grip_force_N"
-META = {"subject": "S01", "condition": "RT", "repetition": 1, "fs_hz": 100.0}
+# A 3 s period, so that the 3 s trial below holds one whole period (import refuses less).
+DESIGN = {
+    "period_s": 3.0,
+    "bins": [1, 2],
+    "amplitudes_Nm": [1.0, 1.0],
+    "phases_rad": [0.0, 0.0],
+    "band_of_bin": [0, 0],
+}
+PLAIN = {"subject": "S01", "condition": "RT", "repetition": 1, "fs_hz": 100.0}
+META = {**PLAIN, "perturbation_design": DESIGN}
 
 
 def _rows(n=300, fs=100.0) -> str:
@@ -164,6 +173,33 @@ IMPORT_CASES = [
     ("unbalanced quote", HEADER + '\n"0,0,0,0,0\n', M, ["t.csv"]),
     ("json array", GOOD_CSV, "[1, 2]", ["t.json", "JSON object"]),
     ("deep json", GOOD_CSV, "[" * 100000 + "]" * 100000, ["t.json", "JSON"]),
+    # A number is not a subject name: 1 would have become "1.h5" beside "S01.h5".
+    ("subject number", GOOD_CSV, {**M, "subject": 1}, ["t.json", "'subject'", '"S01"', "got 1"]),
+    ("condition number", GOOD_CSV, {**M, "condition": 12}, ["t.json", "'condition'", "string"]),
+    (
+        "condition unknown",
+        GOOD_CSV,
+        {**M, "condition": "BT13"},
+        ["t.json", "'condition'", "'BT13'", "did you mean", "BT12", '"condition_declared": true'],
+    ),
+    (
+        "condition_declared text",
+        GOOD_CSV,
+        {**M, "condition": "BT13", "condition_declared": "yes"},
+        ["t.json", "'condition_declared'", "true or false"],
+    ),
+    (
+        "shorter than the paper's period",
+        HEADER + "\n" + _rows(800) + "\n",
+        PLAIN,
+        ["t.csv", "800 data rows at 100 Hz = 8 s", "one perturbation period: 45 s (4500 rows"],
+    ),
+    (
+        "shorter than its design's period",
+        GOOD_CSV,
+        {**M, "perturbation_design": {**DESIGN, "period_s": 5.0}},
+        ["t.csv", "= 3 s", "period: 5 s (500 rows", "'perturbation_design'"],
+    ),
 ]
 
 
@@ -181,6 +217,24 @@ def test_bad_import_exits_2_naming_file_and_field(tmp_path, capsys, csv, meta, f
     assert not out.exists()
 
 
+def test_a_declared_new_condition_is_imported_and_round_trips(tmp_path):
+    src = _trial_dir(tmp_path, GOOD_CSV, {**M, "condition": "BT13", "condition_declared": True})
+    assert main(["import", str(src), "--out", str(tmp_path / "out")]) == 0
+    (rec,) = load_study(tmp_path / "out")
+    assert rec.condition == "BT13"
+    # Exported again, the declaration travels among the trial's attributes.
+    assert main(["export", str(tmp_path / "out"), "--out", str(tmp_path / "csv")]) == 0
+    assert main(["import", str(tmp_path / "csv"), "--out", str(tmp_path / "back")]) == 0
+    (back,) = load_study(tmp_path / "back")
+    assert back.condition == "BT13"
+
+
+def test_a_short_trial_that_ended_early_is_imported(tmp_path):
+    csv = HEADER + "\n" + _rows(800) + "\n"
+    src = _trial_dir(tmp_path, csv, {**PLAIN, "status": "aborted", "abort_reason": "stop"})
+    assert main(["import", str(src), "--out", str(tmp_path / "out")]) == 0
+
+
 def test_trials_numbered_from_zero_are_imported(tmp_path):
     (tmp_path / "in").mkdir()
     (tmp_path / "in" / "t.csv").write_text(GOOD_CSV)
@@ -188,6 +242,66 @@ def test_trials_numbered_from_zero_are_imported(tmp_path):
     assert main(["import", str(tmp_path / "in"), "--out", str(tmp_path / "out")]) == 0
     (rec,) = load_study(tmp_path / "out")
     assert rec.trial_index == 0
+
+
+NUMBER_CASES = [
+    # (id, argv, the option argparse names)
+    ("simulate jobs 0", ["simulate", "--subjects", "1", "--jobs", "0"], "--jobs"),
+    ("simulate jobs negative", ["simulate", "--subjects", "1", "--jobs", "-2"], "--jobs"),
+    ("simulate subjects 0", ["simulate", "--subjects", "0"], "--subjects"),
+    ("simulate subjects negative", ["simulate", "--subjects", "-3"], "--subjects"),
+    ("simulate subjects text", ["simulate", "--subjects", "two"], "--subjects"),
+    ("simulate seed negative", ["simulate", "--subjects", "1", "--seed", "-1"], "--seed"),
+    ("report jobs 0", ["report", "DIR", "--jobs", "0"], "--jobs"),
+    ("report inertia negative", ["report", "DIR", "--inertia-value", "-1"], "--inertia-value"),
+    ("report inertia nan", ["report", "DIR", "--inertia-value", "nan"], "--inertia-value"),
+    ("diagnose jobs 0", ["diagnose", "DIR", "--jobs", "0"], "--jobs"),
+    ("rig-check periods 0", ["rig-check", "--periods", "0"], "--periods"),
+    ("run subject 0", ["run", "--subject", "0"], "--subject"),
+    ("stop subject negative", ["stop", "--subject", "-1"], "--subject"),
+]
+
+
+@pytest.mark.parametrize(
+    "argv, option", [c[1:] for c in NUMBER_CASES], ids=[c[0] for c in NUMBER_CASES]
+)
+def test_bad_numbers_are_refused_naming_the_option(tmp_path, capsys, argv, option):
+    out = tmp_path / "out"
+    argv = [str(tmp_path) if a == "DIR" else a for a in argv] + ["--out", str(out)]
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2, err
+    assert f"error: argument {option}" in err and "must be" in err, err
+    assert not out.exists()
+
+
+def test_simulate_study_refuses_zero_jobs(tmp_path):
+    from steerlab.app.simulate import SimulateError, simulate_study
+
+    with pytest.raises(SimulateError, match="--jobs must be ≥ 1, got 0"):
+        simulate_study(1, tmp_path / "out", jobs=0)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["report", "{missing}", "--out", "{out}"], "no such folder: {missing}"),
+        (["export", "{missing}", "--out", "{out}"], "no such folder: {missing}"),
+        (["diagnose", "{missing}", "--out", "{out}"], "no such folder: {missing}"),
+        (["import", "{missing}", "--out", "{out}"], "no such folder: {missing}"),
+        (["rig-check", "--recording", "{missing}.h5", "--out", "{out}"], "no such file: {missing}"),
+    ],
+    ids=["report", "export", "diagnose", "import", "rig-check"],
+)
+def test_a_missing_input_is_named_as_missing(tmp_path, capsys, argv, message):
+    names = {"missing": tmp_path / "nowhere", "out": tmp_path / "out"}
+    code, err = _run(capsys, *[a.format(**names) for a in argv])
+    assert code == 2, err
+    assert err.count("\n") == 1 and message.format(**names) in err, err
+    assert "not a directory" not in err
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_300000_column_header_takes_linear_time(tmp_path, capsys):

@@ -1,0 +1,85 @@
+"""A rig check on a recording with hands on the wheel warns, in what it prints and in its page;
+so does one whose values the recording does not determine. A hands-off recording does not."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import h5py
+import pytest
+
+from steerlab.app.cli import main
+from steerlab.hardware.sim.physiology import make_population
+from steerlab.hardware.sim.rig import simulated_rig
+from steerlab.hardware.sim.world import WorldConfig
+from steerlab.protocols.datafile import SessionWriter
+from steerlab.protocols.engine import SessionEngine
+from steerlab.protocols.protocol import parse_protocol
+from steerlab.protocols.session import build_plan
+from tests.helpers import fast_protocol_text
+from tests.rigcheck.test_rigcheck_sim import hands_off_trial, world
+
+
+@pytest.fixture(scope="module")
+def held(tmp_path_factory):
+    """A subject's familiarization and first measured trial (the subject holds the wheel)."""
+    d = tmp_path_factory.mktemp("held")
+    protocol = parse_protocol(fast_protocol_text(), "fast.toml")
+    plan = build_plan(protocol, 2)
+    plan = replace(plan, trials=plan.trials[:2])
+    rig = simulated_rig(make_population(2, seed=1)[1], WorldConfig(fs_hz=200.0))
+    engine = SessionEngine(plan, rig.batch_loop())
+    path = d / f"{plan.subject}.h5"
+    writer = SessionWriter(path, extra_attributes={"simulated": True})
+    engine.subscribe(writer)
+    engine.run()
+    writer.close()
+    with h5py.File(path, "r") as f:
+        (key,) = [k for k in f["trials"] if "_rep1_" in k]
+    return path, key
+
+
+def _rig_check(capsys, out, *argv):
+    code = main(["rig-check", *map(str, argv), "--out", str(out)])
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    page = (out / "index.html").read_text()
+    warnings = json.loads((out / "rig.json").read_text())["warnings"]
+    return printed.out, page, warnings
+
+
+def _assert_hands_on(printed, page, warnings):
+    assert "warning: hands on the wheel? driver_torque_Nm varies by" in printed, printed
+    assert "warning: hands on the wheel? grip_force_N averages" in printed, printed
+    # The values it cannot determine (a held wheel's stiffness and imbalance, here).
+    assert "its SEM" in printed and "exceeds the value itself" in printed, printed
+    assert "<h2 class=bad>Warnings</h2>" in page
+    assert "hands on the wheel? driver_torque_Nm" in page and "exceeds the value itself" in page
+    assert "<li>none</li>" not in page
+    assert any(w.startswith("hands on the wheel?") for w in warnings)
+
+
+def test_a_held_trial_of_a_session_file_warns(held, tmp_path, capsys):
+    path, key = held
+    printed, page, warnings = _rig_check(capsys, tmp_path / "rc", "--recording", path,
+                                         "--trial", key)  # fmt: skip
+    _assert_hands_on(printed, page, warnings)
+    assert "the trial is not a hands-off trial" in printed
+
+
+def test_a_held_trial_exported_as_csv_warns(held, tmp_path, capsys):
+    path, key = held
+    assert main(["export", str(path.parent), "--out", str(tmp_path / "csv")]) == 0
+    (csv,) = (tmp_path / "csv").glob("*_rep1.csv")
+    capsys.readouterr()
+    _assert_hands_on(*_rig_check(capsys, tmp_path / "rc", "--recording", csv))
+
+
+def test_a_hands_off_recording_has_no_warning(tmp_path, capsys):
+    # Friction and imbalance near zero carry SEMs larger than themselves but well inside their
+    # tolerances: a clear "none", not a warning.
+    path = hands_off_trial(tmp_path / "rc.h5", world(), periods=1)
+    printed, page, warnings = _rig_check(capsys, tmp_path / "rc", "--recording", path)
+    assert "warning" not in printed and warnings == [], printed
+    assert "Warnings</h2>" not in page and "<li>none</li>" in page
