@@ -280,12 +280,13 @@ def _inertia_panel(ax, res: StudyResults) -> None:
     ax.errorbar(x, v, yerr=s, fmt="o", ms=4, color="0.2", capsize=2)
     # The group fits hold the subjects' median (a free group I_i where none is determined).
     g = res.study.inertia.get("group")
-    held = [c.fit.params.I_i for c in res.study.conditions if c.fit is not None]
+    group_held = [c.fit.params.I_i for c in res.study.conditions if c.fit is not None]
     if g is not None:
         ax.axhline(g.I_i, color="black", lw=1, ls="--", label=f"group fit {g.I_i:.3g}")
-    elif held:
-        ax.axhline(held[0], color="black", lw=1, ls="--", label=f"group fits hold {held[0]:.3g}")
-    if g is not None or held:
+    elif group_held:
+        v0 = group_held[0]
+        ax.axhline(v0, color="black", lw=1, ls="--", label=f"group fits hold {v0:.3g}")
+    if g is not None or group_held:
         ax.legend(fontsize=8, loc="upper left")
     ax.set_xticks(x, names, rotation=90, fontsize=7)
     ax.set_title(f"{symbol('I_i')} (kg·m²), one per subject ± SEM")
