@@ -372,7 +372,17 @@ def build_parser() -> argparse.ArgumentParser:
         "Run one subject's session on a rig in real time (the simulated rig by default), with "
         "pause, abort, redo and resume; Ctrl-C or Enter is an emergency stop.",
         "  steerlab run --subject 3 --out sessions\n"
-        "  steerlab run --rig RIG.toml --subject 3 --out sessions --resume",
+        "  steerlab run --rig RIG.toml --subject 3 --out sessions --resume\n"
+        "\n"
+        "exit codes:\n"
+        "  0    every trial of the session is complete\n"
+        "  2    bad input (protocol, rig file, subject; the session file exists without\n"
+        "       --resume, or another process writes it): nothing was run\n"
+        "  3    the session stopped before its end: an emergency stop, a trial a fault aborted\n"
+        "       (--on-abort stop, or aborted trials in a row), the engine broken; every sample\n"
+        "       is in the file, continue with --resume\n"
+        "  130  Ctrl-C while the input was still being checked (from the rig's bring-up on,\n"
+        "       Ctrl-C is an emergency stop: 3)",
     )
     n.add_argument("--rig", help="rig configuration TOML (default: the simulated rig)")
     n.add_argument("--subject", type=COUNT, required=True, metavar="N", help="which subject: "

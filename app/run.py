@@ -54,6 +54,8 @@ from steerlab.protocols.session import build_plan, subject_id
 from steerlab.protocols.writelock import LockedError, WriterLock
 
 PIDFILE_GLOB = "steerlab-run-*.pid"
+#: Set for the session's child processes: no terminal escape codes from numba (see _run).
+NO_NUMBA_HIGHLIGHTING = "NUMBA_DISABLE_ERROR_MESSAGE_HIGHLIGHTING"
 
 #: What follows a trial aborted by a fault: ask the experimenter, or redo, next, stop unasked.
 ON_ABORT = ("ask", "redo", "next", "stop")
@@ -252,6 +254,11 @@ def _run(
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGUSR1)}
     loop = writer = None
+    # numba's error highlighting (colorama) registers a reset at exit in every process that
+    # formats a typing message while compiling; the loop's and the simulated lab's processes
+    # do, and on a terminal each then wrote a stray "\x1b[0m" as it ended. The processes
+    # inherit this when they start; their messages are plain text either way.
+    os.environ.setdefault(NO_NUMBA_HIGHLIGHTING, "1")
     try:
         say(f"bringing up the rig ({rig.source}) ...")
         loop = ProcessLoop(rig_path, subject_number)

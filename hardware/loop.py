@@ -377,6 +377,9 @@ class DeviceLoop:
                     "late_cycles": int(late),
                     "late_fraction": float(late / len(errors)),
                     "cycles": len(errors),
+                    # What "late" and "stalled" meant in this trial, for whoever reports it.
+                    "late_threshold_ms": LATE_S * 1e3,
+                    "stall_limit_ms": stall_s * 1e3,
                 }
                 if trace is not None:
                     self._stats["trace_summary"] = trace_summary(trace, np.asarray(errors))

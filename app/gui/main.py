@@ -77,6 +77,9 @@ def run_gui(rig: str | None, out: str, protocol: str | None) -> int:
     from steerlab.app.gui.session_window import ExperimenterWindow, dashboard_span
 
     configure_process(loop_in_process=rig is None)
+    # As `steerlab run` does: the loop's and the lab's processes inherit it, and numba then
+    # writes no terminal escape codes as they end.
+    os.environ.setdefault("NUMBA_DISABLE_ERROR_MESSAGE_HIGHLIGHTING", "1")
     app = QApplication.instance() or QApplication(sys.argv[:1])
     if not isinstance(app, QApplication):
         raise RuntimeError("steerlab gui: this process already runs a Qt application without a GUI")

@@ -61,16 +61,27 @@ def log_ticks(lo: float, hi: float) -> list[list[tuple[float, str]]]:
 
 
 class FrameCounter(QObject):
-    """Counts paint events of a widget: frames actually drawn, not merely requested."""
+    """Counts frames actually drawn, not merely requested: a frame is the first paint of the
+    widget after :meth:`new_frame` (new curves were set). Qt paints again for other reasons (a
+    relayout, an item whose size changed, a window uncovered); those repaints show nothing new,
+    so they are counted in ``paints`` only, and ``frames`` never exceeds the refreshes."""
 
     def __init__(self, widget: QWidget) -> None:
         super().__init__(widget)
         self.frames = 0
+        self.paints = 0
+        self._pending = False
         widget.installEventFilter(self)
+
+    def new_frame(self) -> None:
+        self._pending = True
 
     def eventFilter(self, obj: QObject, event: QEvent) -> bool:  # noqa: N802 (Qt's name)
         if event.type() == QEvent.Type.Paint:
-            self.frames += 1
+            self.paints += 1
+            if self._pending:
+                self.frames += 1
+                self._pending = False
         return False
 
 
@@ -121,6 +132,52 @@ _PANELS: tuple[Panel, ...] = (
         min_span=10.0,
     ),
 )
+
+#: Smallest distance between two labelled ticks of a y axis, px: pyqtgraph labels at least
+#: three ticks on any axis, which on a plot 60 px high runs the labels together.
+MIN_TICK_SPACING_PX = 26.0
+#: Smallest height of the four plots together, px: each plot's data area is then about 56 px
+#: high, room for two labelled ticks (the window must still fit a 1280×800 screen).
+MIN_PLOTS_PX = 300
+#: Height of each plot's title row, px (pyqtgraph's is 30: room for a 9-pt title and a margin
+#: that four plots cannot spare).
+TITLE_ROW_PX = 18
+#: Width of each plot's left axis, px, the same for all: their data areas line up, and a tick
+#: label that gets wider ("-10" after "-5") does not relayout the plots (a second paint).
+LEFT_AXIS_PX = 52
+
+
+def nice_step(at_least: float) -> float:
+    """The smallest 1, 2 or 5 × 10^k that is ≥ ``at_least`` (> 0)."""
+    k = math.floor(math.log10(at_least))
+    for m in (1.0, 2.0, 5.0, 10.0):
+        step = m * 10.0**k
+        if step >= at_least * (1 - 1e-9):
+            return step
+    return 10.0 ** (k + 1)
+
+
+class SparseAxis(pg.AxisItem):
+    """A y axis whose labelled ticks are at least ``MIN_TICK_SPACING_PX`` apart, with one
+    level of unlabelled minor ticks between them."""
+
+    def tickSpacing(self, minVal: float, maxVal: float, size: float):  # noqa: N802, N803
+        levels = super().tickSpacing(minVal, maxVal, size)
+        span = abs(maxVal - minVal)
+        if not levels or size <= 0 or span == 0:
+            return levels
+        major = levels[0][0]
+        need = span * MIN_TICK_SPACING_PX / size
+        if major < need:
+            major = nice_step(need)
+            # A single label gives no scale: one step finer, if the labels still keep apart.
+            finer = major / 2  # 0.5, 1 or 2.5 × 10^k: two or three labels
+            labels = math.floor(maxVal / major) - math.ceil(minVal / major) + 1
+            if labels < 2 and finer * size / span >= 0.7 * MIN_TICK_SPACING_PX:
+                major = finer
+        mantissa = major / 10.0 ** math.floor(math.log10(major))
+        return [(major, 0.0), (major / (4.0 if abs(mantissa - 2.0) < 1e-6 else 5.0), 0.0)]
+
 
 #: What Qt caches as a pixmap: items that change a few times per trial (axes, titles, legends,
 #: fixed lines). Without it every frame replays their drawing (text above all) wherever the
@@ -264,6 +321,7 @@ class LivePlots(pg.GraphicsLayoutWidget):
         self.window_s = window_s
         self.max_points = max_points  # a cap on 2 × the pixel width
         self.setBackground("w")
+        self.setMinimumHeight(MIN_PLOTS_PX)
         self.curves: dict[str, LiveCurve] = {}
         self.plots: list[pg.PlotItem] = []
         self.ranges: list[HeldRange] = []
@@ -271,12 +329,17 @@ class LivePlots(pg.GraphicsLayoutWidget):
         self._scale: dict[str, float] = {}
         self._panel_of: dict[str, int] = {}
         for row, panel in enumerate(_PANELS):
-            p = self.addPlot(row=row, col=0)
+            left = SparseAxis("left")
+            p = self.addPlot(row=row, col=0, axisItems={"left": left})
             p.setTitle(panel.title, size="9pt")
+            p.titleLabel.setMaximumHeight(TITLE_ROW_PX)
+            p.layout.setRowFixedHeight(0, TITLE_ROW_PX)
             p.setLabel("left", panel.unit)
             # pyqtgraph would rescale a small range by an SI factor and append it to the label
             # ("N·m (x0.001)"): fixed units, and tick values in those units.
-            p.getAxis("left").enableAutoSIPrefix(False)
+            left.enableAutoSIPrefix(False)
+            left.setStyle(maxTextLevel=0)  # labels on the major ticks only
+            left.setWidth(LEFT_AXIS_PX)
             p.setMenuEnabled(False)
             p.setMouseEnabled(x=False, y=False)
             p.hideButtons()
@@ -391,18 +454,30 @@ class LivePlots(pg.GraphicsLayoutWidget):
                     i = self._panel_of[ch]
                     lo[i] = min(lo[i], float(np.nanmin(yy)))
                     hi[i] = max(hi[i], float(np.nanmax(yy)))
-            for i, (p, r, a, b) in enumerate(zip(self.plots, self.ranges, lo, hi, strict=True)):
+            for i, (r, a, b) in enumerate(zip(self.ranges, lo, hi, strict=True)):
                 if math.isfinite(a) and math.isfinite(b):
                     new = r.update(a, b, t0)
                     if new is not None:
-                        p.setYRange(*new, padding=0)
-                        self._set_curve_rects(i)
+                        self._set_y_range(i, new)
             self.trial_time_s = now
         else:
             for curve in self.curves.values():
                 curve.set_curve(np.zeros(0), np.zeros(0))
+        self.frames.new_frame()
         self.refreshes += 1
         self.refresh_s += time.perf_counter() - t0
+
+    def _set_y_range(self, panel: int, lo_hi: tuple[float, float]) -> None:
+        p = self.plots[panel]
+        p.setYRange(*lo_hi, padding=0)
+        self._set_curve_rects(panel)
+        # pyqtgraph applies a new range when it paints; the horizontal lines then find their
+        # new size during that paint and ask for a second one. Applied now, with the lines'
+        # sizes, the one paint that follows draws the new range.
+        p.getViewBox().updateMatrix()
+        for item in p.items:
+            if isinstance(item, pg.InfiniteLine):
+                item.boundingRect()
 
 
 class CoherencePlot(pg.PlotWidget):

@@ -14,7 +14,11 @@ Figures (all over the measured segment ``[measured_start, measured_stop)`` unles
 - lost samples (a complete trial): planned minus received by the GUI (the engine's own count is
   shown beside it). An aborted trial loses nothing: the samples after its end were never
   acquired, and are reported as "not recorded (aborted)", planned minus the engine's count;
-- loop timing: the loop's ``trial_stats()`` carried by the ``TrialEnded`` event.
+- loop timing: the loop's ``trial_stats()`` carried by the ``TrialEnded`` event. A late cycle
+  (later than the loop's threshold, 0.5 ms) means, on a rig whose devices keep their own
+  time, a sample taken off its due time: flagged above :data:`LATE_WARN_FRACTION`, with what
+  to do. On a rig whose world steps once per cycle (``steps_by_sample``: the built-in
+  simulated rig) a late cycle changes no recorded value, and the row says so instead.
 """
 
 from __future__ import annotations
@@ -29,8 +33,18 @@ from steerlab.protocols.perturbation import PerturbationDesign
 #: Below this median band coherence the trial is flagged (ours: the paper's coherence is
 #: "high except at the lowest frequencies"; 0.5 catches a slack grip or a wrong sign early).
 COHERENCE_WARN = 0.5
-#: Late cycles above this fraction are flagged.
+#: Late cycles above this fraction are flagged (on a rig whose devices keep their own time).
 LATE_WARN_FRACTION = 0.001
+#: What to do about late cycles on such a rig (docs/live-loop.md, "What a lab PC needs").
+LATE_ADVICE = (
+    "samples unevenly spaced in time; close other programs and give Steerlab real-time "
+    'priority (docs/live-loop.md, "What a lab PC needs")'
+)
+#: Why late cycles do not matter on a rig whose world steps once per cycle.
+LATE_HARMLESS = (
+    "harmless here: the simulated world steps once per cycle, not by the clock, so no "
+    "recorded value changes (the loop shares the GUI's process; with --rig it has its own)"
+)
 
 
 @dataclass(frozen=True)
@@ -50,6 +64,7 @@ class QualityCheck:
     outside_boundary_percent: float | None
     loop: dict = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
+    steps_by_sample: bool = False  # the rig's world steps once per cycle: lateness is harmless
 
     @property
     def lost_samples(self) -> int:
@@ -109,7 +124,7 @@ class QualityCheck:
                     f"  max {lp['period_error_max_ms']:.2f} ms",
                 )
             )
-            out.append(("late cycles", f"{lp.get('late_cycles', 0)} of {lp.get('cycles', 0)}"))
+            out.append(("late cycles", self.late_cycles_text()))
         else:
             # Words, not a dict's repr: a loop that is not paced reports counts only.
             counts = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in lp.items())
@@ -117,6 +132,38 @@ class QualityCheck:
                 ("loop timing", "not paced, no timing figures" + (f" ({counts})" if counts else ""))
             )
         return out
+
+    def late_cycles_text(self) -> str:
+        """The late cycles in words: how many, what late means, the worst against the limit
+        that aborts a trial, and whether it matters here."""
+        lp = self.loop
+        late, cycles = int(lp.get("late_cycles", 0)), int(lp.get("cycles", 0))
+        text = f"{late} of {cycles} cycles"
+        if "late_threshold_ms" in lp:
+            text += f" > {lp['late_threshold_ms']:g} ms late"
+        else:
+            text += " late"
+        worst = lp.get("period_error_max_ms")
+        limit = lp.get("stall_limit_ms")
+        if worst is not None:
+            abort = f"; a trial aborts at {_ms(limit)}" if limit is not None else ""
+            text += f" (worst {_ms(worst)}{abort})"
+        if self.steps_by_sample:
+            return f"{text}; {LATE_HARMLESS}"
+        if late:
+            text += "; a late cycle samples the rig off its due time"
+        return text
+
+
+def _ms(v: float) -> str:
+    """A duration in ms as a person reads it: 12 ms, 0.6 ms, 1000 ms."""
+    return f"{v:.0f} ms" if v >= 10 else f"{v:.1g} ms" if v < 1 else f"{v:.1f} ms"
+
+
+def late_warning(stats: dict) -> bool:
+    """More late cycles than :data:`LATE_WARN_FRACTION` of the trial's cycles."""
+    cycles = stats.get("cycles") or 0
+    return cycles > 0 and stats.get("late_cycles", 0) > LATE_WARN_FRACTION * cycles
 
 
 def band_coherence(
@@ -161,8 +208,12 @@ def quality_check(
     n_planned: int,
     n_engine: int,
     loop_stats: dict | None = None,
+    steps_by_sample: bool = False,
 ) -> QualityCheck:
-    """Quality figures of one trial from its samples (see the module docstring)."""
+    """Quality figures of one trial from its samples (see the module docstring).
+
+    ``steps_by_sample``: the rig's world advances one sample per loop cycle whatever the clock
+    (the built-in simulated rig), so a late cycle changes no recorded value: not a warning."""
     tp = np.asarray(channels.get("perturbation_torque_Nm", np.zeros(0)), dtype=float)
     th = np.asarray(channels.get("wheel_angle_rad", np.zeros(0)), dtype=float)
     n_rx = min(len(tp), len(th))
@@ -191,8 +242,9 @@ def quality_check(
         warn.append(f"the display received {n_rx} samples, the engine counted {n_engine}")
     if coh.size and float(np.median(coh)) < COHERENCE_WARN:
         warn.append(f"low coherence (median {float(np.median(coh)):.2f})")
-    if stats.get("cycles") and stats.get("late_cycles", 0) > LATE_WARN_FRACTION * stats["cycles"]:
-        warn.append(f"{stats['late_cycles']} late loop cycles")
+    if late_warning(stats) and not steps_by_sample:
+        pct = 100.0 * stats["late_cycles"] / stats["cycles"]
+        warn.append(f"{stats['late_cycles']} late loop cycles ({pct:.1f} %): {LATE_ADVICE}")
     if "stats_error" in stats:
         warn.append(f"no loop timing: {stats['stats_error']}")
     return QualityCheck(
@@ -211,4 +263,5 @@ def quality_check(
         outside_boundary_percent=outside,
         loop=stats,
         warnings=tuple(warn),
+        steps_by_sample=steps_by_sample,
     )

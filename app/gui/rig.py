@@ -89,6 +89,9 @@ class RigHandle:
     simulated: bool = True
     close: Callable[[], None] = lambda: None
     drive: Any = None  # the wheel drive, for status and tests (``drive.enabled``)
+    #: The rig's world advances one sample per loop cycle, not with the clock (the built-in
+    #: simulated rig): a late cycle changes no recorded value (app/gui/quality.py).
+    steps_by_sample: bool = False
     extra_attributes: dict[str, Any] = field(default_factory=dict)  # stored in the session file
 
 
@@ -207,6 +210,7 @@ def make_rig_loop(
         display=display,
         simulated=True,
         drive=rig.drive,
+        steps_by_sample=True,  # SimulatedDrive.sync() steps the world; reads never advance it
         extra_attributes={
             "simulated": True,
             "simulation_seed": seed,

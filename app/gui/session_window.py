@@ -69,6 +69,7 @@ from steerlab.app.gui.plots import CoherencePlot, LivePlots, RateMeter
 from steerlab.app.gui.quality import QualityCheck, quality_check
 from steerlab.app.gui.tracker_feed import TrackerFeed
 from steerlab.protocols import events as ev
+from steerlab.protocols.engine import State
 from steerlab.protocols.latin_square import subject_row, williams_square
 from steerlab.protocols.protocol import Protocol
 from steerlab.protocols.session import TrialSpec, subject_id
@@ -78,6 +79,10 @@ if TYPE_CHECKING:  # the rig check's analysis is imported when a rig check is id
 
 #: What the subject dashboard says during a rig check.
 HANDS_OFF_MESSAGE = "RIG CHECK — let go of the wheel, do not touch it"
+#: What it says between trials.
+BREAK_MESSAGE = "break"
+#: What it says from an emergency stop until the experimenter releases it.
+STOPPED_MESSAGE = "Stopped — please let go of the wheel"
 
 
 @dataclass(frozen=True)
@@ -134,6 +139,37 @@ def trial_text(trial_index: int, condition: str, attempt: int | None = None) -> 
     name ("02_RT_rep1_a1") is for programs."""
     again = f", attempt {attempt}" if attempt is not None else ""
     return f"trial {trial_index} ({condition}{again})"
+
+
+def abort_text(name: str, status: str, reason: str | None) -> str:
+    """The alert for a trial that did not complete, saying "aborted" once: a reason such as
+    "aborted by the experimenter" already says it."""
+    if not reason:
+        return f"{name} {status}"
+    if reason.startswith(status):
+        return f"{name} {reason}"
+    return f"{name} {status}: {reason}"
+
+
+def session_state_text(c: SessionController, paused_in_trial: bool) -> str:
+    """What the session is doing, in words (never the engine's state names): the same text
+    between trials whether the last trial completed or was aborted."""
+    e = c.engine
+    if e is None:
+        return "no session"
+    if c.in_trial:
+        if e.state is State.ABORTING:
+            return "trial ending"
+        return "trial paused" if paused_in_trial else "trial running"
+    if e.state is State.BROKEN:
+        return "engine failed: close the window and start again"
+    if e.state is State.DONE or not e.pending():
+        return "session finished"
+    if c.estop_latched:
+        return "stopped: release the emergency stop to go on"
+    if c.between_trials or (e.state is State.IDLE and not c.worker_alive):
+        return "ready for the next trial"
+    return "starting the trial"
 
 
 class ExperimenterWindow(QMainWindow):
@@ -467,10 +503,10 @@ class ExperimenterWindow(QMainWindow):
         if done.error is not None or done.fit is None:
             self._alert(f"rig check: {done.error}")
             return
-        from steerlab.analysis.rigcheck import summary
+        from steerlab.analysis.rigcheck import summary, verdict_line
 
-        failed = [c.name for c in done.checks if not c.passed]
-        verdict = "PASS" if not failed else f"FAIL ({', '.join(failed)})"
+        # The command line's and the page's verdict: hands on the wheel is NOT VALID, not FAIL.
+        verdict = verdict_line(done.fit, done.checks)
         self.rig_check_result = summary(done.fit, done.checks)
         where = self.controller.path.parent if self.controller.path else "?"
         self._alert(f"rig check: {verdict}; rig.json and index.html in {where}")
@@ -494,12 +530,12 @@ class ExperimenterWindow(QMainWindow):
             self._alert("")  # the previous trial's abort or warning is not about this one
             self._show_next()
         elif isinstance(event, ev.TrialEnded):
-            self.dashboard.set_active(False, "break")
+            self._show_waiting()
             self._quality(event)
             self._show_next()  # the box never shows a finished trial: the next one, at once
             if event.status != "complete":
                 name = self._trial_names.get(event.key, f"trial {event.trial_index}")
-                self._alert(f"{name} aborted: {event.reason}")
+                self._alert(abort_text(name, event.status, event.reason))
             elif c.is_rig_check:
                 self._identify_rig_check()
         elif isinstance(event, RigCheckDone):
@@ -518,8 +554,9 @@ class ExperimenterWindow(QMainWindow):
             self._update_controls()
 
     def _quality(self, end: ev.TrialEnded) -> None:
+        c = self.controller
         cap = self.live.take_trial(end.key)
-        plan = self.controller.plan
+        plan = c.plan
         if cap is None or plan is None:
             return
         a = cap.attributes
@@ -537,6 +574,7 @@ class ExperimenterWindow(QMainWindow):
                 n_planned=cap.n_planned,
                 n_engine=end.n_samples,
                 loop_stats=end.stats,
+                steps_by_sample=c.rig is not None and c.rig.steps_by_sample,
             )
         except Exception as e:  # a figure that cannot be computed must not hide the others
             name = self._trial_names.get(end.key, f"trial {end.trial_index}")
@@ -575,7 +613,20 @@ class ExperimenterWindow(QMainWindow):
             self._alert(f"EMERGENCY STOP FAILED: {e!r} — switch the rig off at the mains")
         else:
             self._alert("emergency stop: motor off, trial aborted. Check the subject and the rig.")
+        self._show_waiting()
         self._update_controls()
+
+    def _show_waiting(self) -> None:
+        """The subject's dashboard while no trial runs: stopped while the emergency stop is
+        latched (the experimenter's window shows E-STOP LATCHED), else a break."""
+        c = self.controller
+        if c.estop_latched:
+            message = STOPPED_MESSAGE
+        elif c.is_rig_check and c.next_trial() is not None:
+            message = HANDS_OFF_MESSAGE  # the hands-off trial has still to run
+        else:
+            message = BREAK_MESSAGE
+        self.dashboard.set_active(False, message)
 
     def _show_estop_state(self) -> None:
         latched = self.controller.estop_latched
@@ -592,6 +643,7 @@ class ExperimenterWindow(QMainWindow):
         self._do(self.controller.release_estop)
         if not self.controller.estop_latched:
             self._alert("")
+            self._show_waiting()
 
     def _selected_trial(self) -> int | None:
         rows = self.table.selectionModel().selectedRows() if self.table.selectionModel() else []
@@ -627,15 +679,7 @@ class ExperimenterWindow(QMainWindow):
         self.release_button.setVisible(c.estop_latched)
         self.estop_button.setEnabled(True)  # never disabled
         self._show_estop_state()
-        if c.engine is None:
-            self.state_label.setText("no session")
-        else:
-            st = c.engine.state.value
-            if c.between_trials:
-                st = "waiting for start"
-            elif paused_in_trial:
-                st = "trial paused"
-            self.state_label.setText(f"engine: {st}")
+        self.state_label.setText(session_state_text(c, paused_in_trial))
 
     def _refresh_table(self) -> None:
         rows = self.controller.trial_rows()

@@ -21,7 +21,7 @@ from steerlab.app.gui.live_admittance import NO_MODEL, LiveAdmittancePanel
 from steerlab.app.gui.livedata import LiveData
 from steerlab.app.gui.main import run_gui
 from steerlab.app.gui.rig import RigError, make_rig_loop
-from steerlab.app.gui.session_window import ExperimenterWindow
+from steerlab.app.gui.session_window import BREAK_MESSAGE, STOPPED_MESSAGE, ExperimenterWindow
 from steerlab.protocols import events as ev
 from steerlab.protocols.datafile import SessionFile, SessionWriter
 from steerlab.protocols.engine import SessionEngine
@@ -167,7 +167,7 @@ def test_full_trial_pause_resume_then_redo(qtbot, window, short_protocol, tmp_pa
     assert w.trial_states()[1] == "running"
     assert w.dashboard.boundary_deg == first.boundary_deg
     click(qtbot, w.pause_button)
-    qtbot.waitUntil(lambda: w.state_label.text() == "engine: trial paused", timeout=3000)
+    qtbot.waitUntil(lambda: w.state_label.text() == "trial paused", timeout=3000)
     n = w.live.total_received
     qtbot.wait(300)
     assert w.live.total_received == n  # nothing advances while paused
@@ -176,7 +176,7 @@ def test_full_trial_pause_resume_then_redo(qtbot, window, short_protocol, tmp_pa
     qtbot.waitUntil(lambda: w.trial_states()[1] == "done", timeout=15000)
 
     # The engine waits for the experimenter before the next trial.
-    qtbot.waitUntil(lambda: w.state_label.text() == "engine: waiting for start", timeout=3000)
+    qtbot.waitUntil(lambda: w.state_label.text() == "ready for the next trial", timeout=3000)
     assert w.start_button.isEnabled()
     assert w.trial_states()[2] == "pending"
     # The box shows the next trial as soon as one ends, never the finished one.
@@ -269,7 +269,7 @@ def test_abort_is_disabled_while_waiting_for_start(qtbot, window):
     click(qtbot, w.start_button)
     qtbot.waitUntil(lambda: w.trial_states()[1] == "running", timeout=5000)
     assert w.abort_button.isEnabled()
-    qtbot.waitUntil(lambda: w.state_label.text() == "engine: waiting for start", timeout=15000)
+    qtbot.waitUntil(lambda: w.state_label.text() == "ready for the next trial", timeout=15000)
     assert not w.abort_button.isEnabled() and w.start_button.isEnabled()
     w.close()
 
@@ -314,6 +314,45 @@ def test_the_emergency_stop_shows_that_it_is_latched(qtbot, window):
     assert b.isChecked() and b.text() == "E-STOP LATCHED"
     click(qtbot, w.release_button)
     assert b.text() == "EMERGENCY STOP" and not b.isChecked() and colour() == ready
+    w.close()
+
+
+def test_the_state_reads_the_same_after_an_abort_as_after_a_complete_trial(qtbot, window):
+    """In words, never the engine's state names; an abort's alert says "aborted" once."""
+    w = window
+    open_new(qtbot, w)
+    assert w.state_label.text() == "ready for the next trial"
+    click(qtbot, w.start_button)
+    qtbot.waitUntil(lambda: w.state_label.text() == "trial running", timeout=5000)
+    qtbot.waitUntil(lambda: len(ended(w)) == 1, timeout=15000)
+    qtbot.waitUntil(lambda: w.state_label.text() == "ready for the next trial", timeout=3000)
+    # The built-in simulated rig steps its world once per cycle: late cycles are no warning.
+    assert w.last_quality is not None and w.last_quality.steps_by_sample
+    click(qtbot, w.start_button)
+    qtbot.waitUntil(lambda: w.live.total_received > 50 and w.controller.in_trial, timeout=5000)
+    click(qtbot, w.abort_button)
+    qtbot.waitUntil(lambda: worker_finished(w), timeout=5000)
+    assert w.state_label.text() == "ready for the next trial"
+    alert = w.alert_label.text()
+    assert alert.startswith("trial 2 (") and alert.endswith(") aborted by the experimenter")
+    assert alert.count("aborted") == 1, alert
+    w.close()
+
+
+def test_the_dashboard_says_stopped_after_an_emergency_stop_until_released(qtbot, window):
+    w = window
+    open_new(qtbot, w)
+    click(qtbot, w.start_button)
+    qtbot.waitUntil(lambda: w.live.total_received > 50, timeout=5000)
+    click(qtbot, w.estop_button)
+    qtbot.waitUntil(lambda: worker_finished(w), timeout=5000)
+    # The trial's end comes after the stop: it must not turn the stop into a break.
+    assert ended(w) and w.dashboard.label.text() == STOPPED_MESSAGE
+    assert not w.dashboard.active
+    assert w.state_label.text() == "stopped: release the emergency stop to go on"
+    click(qtbot, w.release_button)
+    assert w.dashboard.label.text() == BREAK_MESSAGE
+    assert w.state_label.text() == "ready for the next trial"
     w.close()
 
 

@@ -132,6 +132,18 @@ def test_one_1600_px_screen_the_dashboard_stays_clear_while_the_window_grows(tmp
     assert wide_dash[2] >= MIN_DASHBOARD_WIDTH
 
 
+PLOT_HEIGHTS = r"""
+out["plot_heights"] = [p.getViewBox().height() for p in w.plots.plots]
+"""
+
+
+def test_one_1600_px_screen_leaves_the_plots_readable(tmp_path):
+    out = placed(tmp_path, [screen("lab", 0, 1600, 1000)], then=GROW + PLOT_HEIGHTS)
+    assert inside(out["filled"][0], out["screens"]["lab"])
+    # Each plot's data area: room for three labelled ticks (it was 55-59 px).
+    assert min(out["plot_heights"]) >= 62, out["plot_heights"]
+
+
 def test_two_screens_the_dashboard_stays_on_the_second_and_each_window_fits(tmp_path):
     # The experimenter's screen narrower than the window's default size (1400 px).
     out = placed(tmp_path, [screen("experimenter", 0, 1280, 800),

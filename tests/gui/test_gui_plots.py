@@ -12,7 +12,7 @@ import pytest
 
 from steerlab.app.gui.livedata import LiveData
 from steerlab.app.gui.main import choose_platform
-from steerlab.app.gui.plots import LivePlots, RateMeter, decimate_minmax
+from steerlab.app.gui.plots import MIN_TICK_SPACING_PX, LivePlots, RateMeter, decimate_minmax
 from steerlab.app.gui.session_window import ExperimenterWindow
 from steerlab.app.gui.system_libs import (
     ALL_PACKAGES,
@@ -149,6 +149,64 @@ def test_flat_traces_keep_a_readable_scale_and_the_unit_labels_apart(qtbot):
     for i, a in enumerate(labels):
         for b in labels[i + 1 :]:
             assert not a.intersects(b), (a, b)
+
+
+def _grow(live: LiveData, start: int, amplitude: float, fs: float = 1000.0) -> None:
+    t = (start + np.arange(20)) / fs
+    wave = amplitude * np.sin(2 * np.pi * 3.0 * t)
+    block = {"time_s": t, "perturbation_torque_Nm": wave, "driver_torque_Nm": wave,
+             "wheel_angle_rad": 0.01 * wave, "grip_force_N": 40 + 10 * wave,
+             "grip_force_left_N": 20 + 5 * wave, "grip_force_right_N": 20 + 5 * wave}  # fmt: skip
+    live(ev.SamplesAcquired("S01/t1", start, block))
+
+
+def test_one_frame_per_refresh_painted_once_even_when_the_ranges_change(qtbot):
+    """The status bar's frames are refreshes that reached the screen: never more than the
+    timer's rate. A new y range (every refresh here) and a wider tick label repaint nothing
+    a second time."""
+    live = LiveData()
+    p = LivePlots(live)
+    qtbot.addWidget(p)
+    p.resize(1000, 500)
+    p.show()
+    p.stop()  # refreshed by hand below
+    qtbot.waitExposed(p)
+    live(ev.TrialStarted("S01/t1", 1, 1, "BT12", {"fs_hz": 1000.0}, 100_000))
+    qtbot.wait(50)
+    frames0, paints0 = p.frames.frames, p.frames.paints
+    n = 30
+    for i in range(n):
+        _grow(live, 20 * i, 1.0 + 0.5 * i)  # the data leave the y range every time
+        p.refresh()
+        qtbot.wait(15)
+    assert p.frames.frames - frames0 == n
+    assert p.frames.paints - paints0 <= n + 2, p.frames.paints - paints0
+
+
+@pytest.mark.parametrize("height", [433, 330])
+def test_y_axis_labels_keep_apart_on_short_plots(qtbot, height):
+    """433 px: the plots in a 1232×904 window (a 1600×1000 screen); 330 px: nearly their
+    smallest. Labels at least MIN_TICK_SPACING_PX apart, or 70 % of it rather than one alone."""
+    live = LiveData()
+    p = LivePlots(live)
+    qtbot.addWidget(p)
+    p.resize(900, height)
+    p.show()
+    qtbot.waitExposed(p)
+    feed(live, 12.0)
+    p.refresh()
+    qtbot.wait(20)
+    for plot in p.plots:
+        vb, axis = plot.getViewBox(), plot.getAxis("left")
+        lo, hi = vb.viewRange()[1]
+        labelled = axis.tickValues(lo, hi, vb.height())[0][1]
+        px = (labelled[1] - labelled[0]) / (hi - lo) * vb.height() if len(labelled) > 1 else 1e9
+        name = plot.titleLabel.text
+        assert 1 <= len(labelled) <= 4, (name, labelled)
+        assert px >= MIN_TICK_SPACING_PX or (
+            len(labelled) >= 2 and px >= 0.7 * MIN_TICK_SPACING_PX
+        ), (name, labelled, px)
+        assert axis.style["maxTextLevel"] == 0  # the minor ticks stay unlabelled
 
 
 def test_frame_rate_in_the_status_bar(qtbot, tmp_path):

@@ -53,3 +53,8 @@ def test_rig_check_from_the_gui(qtbot, window):  # noqa: F811
     assert set(PARAMS) <= set(d)
     assert (path.parent / "index.html").exists()
     qtbot.waitUntil(lambda: worker_finished(w), timeout=10000)
+    # The same verdict as the command line and the page: a recording with hands on the wheel
+    # is not valid, not a pass or a fail of the rig.
+    done.fit.prep.warnings.append("hands on the wheel? (made up for this test)")
+    w._show_rig_check(done)
+    assert "rig check: NOT VALID" in w.alert_label.text(), w.alert_label.text()

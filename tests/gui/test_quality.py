@@ -83,7 +83,8 @@ def test_quality_figures_match_numpy(boundary):
     freqs = [plan.design.frequencies_hz[plan.design.band_of_bin == b].mean() for b in range(8)]
     np.testing.assert_allclose(q.band_frequencies_hz, freqs)
     labels = dict(q.rows())
-    assert "p99 0.200" in labels["loop period error"] and labels["late cycles"] == f"0 of {n}"
+    assert "p99 0.200" in labels["loop period error"]
+    assert labels["late cycles"] == f"0 of {n} cycles late (worst 0.4 ms)"
 
 
 def test_noise_free_coherence_is_one_and_noise_lowers_it():
@@ -137,3 +138,34 @@ def test_no_whole_period_gives_no_coherence():
     )  # fmt: skip
     assert q.n_periods == 0 and q.coherence.size == 0 and q.coherence_median is None
     assert any("engine counted" in w for w in q.warnings)
+
+
+LATE_STATS = {"period_error_p50_ms": 0.01, "period_error_p99_ms": 2.8, "period_error_max_ms": 12.1,
+              "late_cycles": 2830, "cycles": 51000, "late_threshold_ms": 0.5}  # fmt: skip
+
+
+@pytest.mark.parametrize("steps_by_sample", [True, False])
+def test_late_cycles_are_said_in_words_and_flagged_only_where_they_matter(steps_by_sample):
+    plan, setup, ch = _trial(noise_sd=0.01)
+    n = setup.n_samples
+    stall = 1000.0 if steps_by_sample else 20.0
+    q = quality_check(
+        ch, key="k", condition="X", status="complete", fs_hz=setup.fs_hz,
+        measured_start=setup.measured_start, measured_stop=setup.measured_stop,
+        design=plan.design, boundary_deg=8.0, n_planned=n, n_engine=n,
+        loop_stats=LATE_STATS | {"stall_limit_ms": stall}, steps_by_sample=steps_by_sample,
+    )  # fmt: skip
+    row = dict(q.rows())["late cycles"]
+    assert row.startswith(
+        f"2830 of 51000 cycles > 0.5 ms late (worst 12 ms; a trial aborts at {stall:.0f} ms)"
+    ), row
+    late_warnings = [w for w in q.warnings if "late" in w]
+    if steps_by_sample:
+        # The simulated world steps once per cycle: the data are the same, and it says so.
+        assert "no recorded value changes" in row
+        assert late_warnings == []
+    else:
+        assert "off its due time" in row
+        (w,) = late_warnings
+        assert w.startswith("2830 late loop cycles (5.5 %)")
+        assert "close other programs" in w and "real-time priority" in w

@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import os
 import pty
+import select
 import sys
+import time
 from dataclasses import dataclass
 
 import pytest
@@ -19,6 +21,7 @@ from steerlab.protocols.datafile import SessionFile
 from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.protocol import parse_protocol
 from steerlab.protocols.session import build_plan
+from tests.helpers import ROOT
 
 from .conftest import STARVED
 
@@ -226,3 +229,62 @@ def test_a_deferred_trial_runs_after_the_others_and_a_redo_brings_it_back():
     assert [t.trial_index for t in engine.pending()] == [3, 1, 2]
     engine.redo(1)
     assert [t.trial_index for t in engine.pending()] == [1, 3, 2]
+
+
+def _run_on_a_terminal(args: list[str], press_enter_at: bytes, limit_s: float = 120.0):
+    """``python -m steerlab ARGS`` with a pseudo-terminal as its stdin and stdout (what a
+    person sees); Enter is pressed once ``press_enter_at`` has been printed. (output, exit code)"""
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: nothing of pytest's may run here
+        try:
+            os.chdir(ROOT)
+            os.execv(sys.executable, [sys.executable, "-m", "steerlab", *args])
+        finally:
+            os._exit(127)
+    out, pressed, end = b"", False, time.monotonic() + limit_s
+    try:
+        while time.monotonic() < end:
+            if select.select([fd], [], [], 0.2)[0]:
+                try:
+                    data = os.read(fd, 4096)
+                except OSError:  # the child closed the terminal: it has ended
+                    break
+                if not data:
+                    break
+                out += data
+            if not pressed and press_enter_at in out:
+                os.write(fd, b"\n")
+                pressed = True
+    finally:
+        os.close(fd)
+        if time.monotonic() >= end:
+            os.kill(pid, 9)
+        _, status = os.waitpid(pid, 0)
+    return out.decode(errors="replace"), os.waitstatus_to_exitcode(status)
+
+
+def test_a_stopped_session_on_a_terminal_prints_no_escape_codes_and_exits_with_3(
+    tmp_path, protocol_file, lenient_rig
+):
+    """Enter during the second trial: an emergency stop ends the session, exit code 3 (the
+    run subcommand's help lists it); nothing on the terminal but text."""
+    out, code = _run_on_a_terminal(
+        ["run", "--rig", str(lenient_rig), "--subject", "1", "--out", str(tmp_path / "d"),
+         "--protocol", str(protocol_file), "--no-breaks", "--on-abort", "stop"],
+        press_enter_at=b"trial 2/3",
+    )  # fmt: skip
+    assert "session stopped with" in out, out
+    assert code == 3, out
+    assert "\x1b" not in out, repr(out)
+
+
+def test_the_run_help_lists_the_exit_codes(capsys):
+    from steerlab.app.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    text = capsys.readouterr().out
+    codes = text.split("exit codes:", 1)[1]
+    for code, words in (("0", "complete"), ("2", "bad input"), ("3", "stopped before its end"),
+                        ("130", "Ctrl-C")):  # fmt: skip
+        assert f"  {code} " in codes and words in codes, text
