@@ -19,6 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import LogFormatterSciNotation
 
 from steerlab.analysis.armfit import arm_admittance
 from steerlab.analysis.lpv import admittance_response
@@ -51,6 +52,31 @@ def condition_colours(conditions: Sequence[str]) -> dict[str, tuple]:
     n = max(len(conditions) - 1, 1)
     # Stop short of viridis' pale yellow end, which vanishes on white.
     return {c: cmap(0.85 * i / n) for i, c in enumerate(conditions)}
+
+
+# Log-axis tick labels between these are plain numbers, as the report's tables write them.
+PLAIN_RANGE = (1e-4, 1e6)
+
+
+class PlainLogFormatter(LogFormatterSciNotation):
+    """Log-axis tick labels as plain numbers (0.01, 1.2, 50) for ordinary magnitudes, powers of
+    ten only outside :data:`PLAIN_RANGE`: never "1.2 × 10⁰". Which ticks carry a label is
+    matplotlib's choice (decades, and minor ticks when the axis spans less than one)."""
+
+    def __call__(self, x, pos=None):
+        label = super().__call__(x, pos)
+        if not label or not PLAIN_RANGE[0] <= abs(x) < PLAIN_RANGE[1]:
+            return label
+        return f"{x:.6g}"  # six digits drop the float noise of tick positions (0.30000000004)
+
+
+def log_axes(ax, which: str = "xy") -> None:
+    """Log scale on the axes named in ``which``, labelled by :class:`PlainLogFormatter`."""
+    for name in which:
+        axis = ax.xaxis if name == "x" else ax.yaxis
+        (ax.set_xscale if name == "x" else ax.set_yscale)("log")
+        axis.set_major_formatter(PlainLogFormatter(labelOnlyBase=False))
+        axis.set_minor_formatter(PlainLogFormatter(labelOnlyBase=False))
 
 
 def symbol(name: str) -> str:
@@ -178,8 +204,7 @@ def admittance(res: StudyResults) -> Figure:
             h = arm_admittance(c.fit.params, ff)
             ax_m.plot(ff, np.abs(h), "-", lw=1.2, color=col)
             ax_p.plot(ff, np.degrees(np.unwrap(np.angle(h))), "-", lw=1.2, color=col)
-    ax_m.set_xscale("log")
-    ax_m.set_yscale("log")
+    log_axes(ax_m)
     ax_m.set_ylabel("|H| (rad/N·m)")
     ax_m.legend(ncol=len(conds), fontsize=8, loc="lower left")
     ax_p.set_ylabel("phase (deg)")
@@ -245,7 +270,7 @@ def parameter_boxplots(res: StudyResults) -> Figure:
             zorder=4,
             label="group fit ± SEM",
         )
-        ax.set_yscale("log")
+        log_axes(ax, "y")
         top = ax.get_ylim()[1]
         for i, n in enumerate(wild, 1):
             if n:
@@ -302,7 +327,9 @@ def subject_admittance(res: StudyResults) -> Figure | None:
     colours = condition_colours(conds)
     ncol = min(6, len(subjects))
     nrow = int(np.ceil(len(subjects) / ncol))
-    fig = new_figure(2.1 * ncol + 0.6, 1.9 * nrow + 0.9)
+    # A few subjects' panels are narrower than the title and legend: the figure keeps a
+    # minimum width and the title breaks into two lines.
+    fig = new_figure(max(2.1 * ncol + 0.6, 6.0), 1.9 * nrow + 0.9)
     axes = np.atleast_1d(fig.subplots(nrow, ncol, sharex=True, sharey=True)).ravel()
     n_low = res.study.options.fit.n_exclude_low
     for ax, subj in zip(axes, subjects, strict=False):
@@ -317,15 +344,17 @@ def subject_admittance(res: StudyResults) -> Figure | None:
             if r.fit is not None:
                 ff = _fine_grid(f)
                 ax.plot(ff, np.abs(arm_admittance(r.fit.params, ff)), "-", lw=0.9, color=col)
-        ax.set_xscale("log")
-        ax.set_yscale("log")
+        log_axes(ax)
         ax.set_title(subj, fontsize=8)
         ax.tick_params(labelsize=6)
         ax.grid(which="both", alpha=0.2)
     for ax in axes[len(subjects) :]:
         ax.set_visible(False)
     handles = [axes[0].plot([], [], "-o", ms=3, color=colours[c], label=c)[0] for c in conds]
-    fig.suptitle("Admittance per subject: Ĥ (dots; hollow: left out of the fit) and fit (lines)")
+    sep = ":\n" if ncol < 4 else ": "
+    fig.suptitle(
+        f"Admittance per subject{sep}Ĥ (dots; hollow: left out of the fit) and fit (lines)"
+    )
     for ax in axes[max(0, len(subjects) - ncol) : len(subjects)]:
         ax.set_xlabel("frequency (Hz)", fontsize=7)
     fig.supylabel("|H| (rad/N·m)", fontsize=8)
@@ -412,8 +441,7 @@ def lpv_responses(res: StudyResults) -> Figure | None:
             )
     ax_m.plot([], [], "-", color="0.3", label="physical LPV")
     ax_m.plot([], [], "--", color="0.3", label="de Caigny LPV")
-    ax_m.set_xscale("log")
-    ax_m.set_yscale("log")
+    log_axes(ax_m)
     ax_m.set_ylabel("|H| (rad/N·m)")
     ax_p.set_ylabel("phase (deg)")
     ax_p.set_xlabel("frequency (Hz)")
@@ -468,8 +496,7 @@ def leave_one_out(res: StudyResults) -> Figure | None:
             v = vaf.get((m, cond))
             lines.append(f"{method_name(m)}: FIT {_fmt(fit, 1)} %, VAF {_fmt(v, 1)} %")
         ax_m.set_title(f"{cond} left out (μ = {p.mu_N:.0f} N)\n" + "\n".join(lines), fontsize=9)
-        ax_m.set_xscale("log")
-        ax_m.set_yscale("log")
+        log_axes(ax_m)
         ax_p.set_xlabel("frequency (Hz)")
         for ax in (ax_m, ax_p):
             ax.grid(which="both", alpha=0.25)

@@ -1108,15 +1108,27 @@ class StudyResults:
                 if weightings_disagree(va, vb, sa, sb):
                     row["disagree"].append(n)
             rows.append(row)
+        per_subject = [r for r in rows if r["subject"] != "group"]
+        changed = Counter(n for r in per_subject for n in r["disagree"])
         return {
             "default": main,
             "other": other,
             "rule": f"disagree: |difference| > {WEIGHTING_DISAGREEMENT_SEMS:g} × the larger SEM",
             "cells": rows,
+            "n_subject_fits": len(per_subject),
+            "n_subject_fits_that_change": sum(1 for r in per_subject if r["disagree"]),
+            "changed_parameters": dict(changed.most_common()),
         }
 
     def reader_warnings(self) -> list[ReaderWarning]:
         """What a reader must know before trusting the numbers, each in a sentence or two.
+
+        Only what changes how the numbers may be read: simulated data, a part not built,
+        checks not computed, data left out, estimates the data do not determine. Subject fits
+        that change with the other weighting are not here: the two weightings are different
+        estimators, the paper's one less efficient, so on most studies some fits differ by
+        more than their SEMs and that says nothing against the default fit
+        (``weighting_comparison`` and the report's two-weightings section say so).
 
         Long lists (which subject fits, which estimates) stay in the sections named by
         ``section``: a reader acts on a count and a place to look, not on forty names.
@@ -1210,21 +1222,6 @@ class StudyResults:
                     "inertia",
                 )
             )
-        if self.study.options.compare_weightings:
-            wc = self.weighting_comparison()
-            subj = [r for r in wc["cells"] if r["subject"] != "group"]
-            dis = [r for r in subj if r["disagree"]]
-            if dis:
-                names = Counter(n for r in dis for n in r["disagree"])
-                most = ", ".join(f"{n} {k}×" for n, k in names.most_common())
-                out.append(
-                    ReaderWarning(
-                        f"{len(dis)} of {len(subj)} subject fits change by more than "
-                        f"{WEIGHTING_DISAGREEMENT_SEMS:g} SEMs with the other weighting "
-                        f"({most}).",
-                        "weighting",
-                    )
-                )
         return out
 
     def warnings(self) -> list[str]:

@@ -507,6 +507,8 @@ def method_name(method: str) -> str:
 
 def _sci(x: float, sig: int) -> str:
     mantissa, exp = f"{x:.{sig - 1}e}".split("e")
+    if int(exp) == 0:  # "1.2 × 10⁰" is 1.2
+        return mantissa
     return f"{mantissa} × 10{str(int(exp)).translate(_SUPERSCRIPT)}"
 
 
@@ -583,12 +585,33 @@ def _table(
     return f"<table{c}><thead><tr>{th}</tr></thead><tbody>{body}</tbody></table>"
 
 
+# What each figure shows, for a reader who cannot see it (the img's alt text).
+FIGURE_DESCRIPTIONS = {
+    "time_signals": "One recorded trial: perturbation torque, driver torque, wheel angle and "
+    "grip force against time, the analysed periods shaded",
+    "grip": "Grip force per condition: box plots of the subjects' mean grip and grip SD",
+    "admittance": "Admittance magnitude, phase and coherence against frequency per "
+    "condition: subjects' mean estimate, 95 % band and the group fit",
+    "subject_admittance": "Admittance magnitude against frequency for each subject, one "
+    "panel per subject: the estimate and the subject's own fit per condition",
+    "parameters": "Arm-model parameters per condition: the subjects' estimates with their "
+    "SEMs as box plots, the group fit, and the inertia of each subject",
+    "lpv_parameters": "Group-fit arm parameters against grip force at each operating point, "
+    "with the LPV model's interpolation",
+    "lpv_responses": "Admittance of both LPV models at each operating point against the "
+    "measured group frequency response",
+    "leave_one_out": "Each intermediate operating point's measured admittance and its "
+    "prediction by the LPV models rebuilt without it",
+}
+
+
 def _figure(images: dict[str, str | None], name: str, caption: str) -> str:
     uri = images.get(name)
     if uri is None:
         return ""
+    alt = FIGURE_DESCRIPTIONS.get(name, name.replace("_", " "))
     return (
-        f'<figure id="fig-{name}"><img alt="{_e(name)}" src="{uri}">'
+        f'<figure id="fig-{name}"><img alt="{_e(alt)}" src="{uri}">'
         f"<figcaption>{caption}</figcaption></figure>"
     )
 
@@ -728,7 +751,12 @@ def html_page(
         _pairwise_matrices(res),
         "</body></html>",
     ]
-    return "\n".join(p for p in parts if p)
+    return _DOCS_PATH.sub("Steerlab's docs/", "\n".join(p for p in parts if p))
+
+
+# The page stands alone, away from the repository: a bare "docs/x.md" (in this module's text or
+# in a sentence from another) is named as Steerlab's. No base64 figure can match: it has no ".".
+_DOCS_PATH = re.compile(r"(?<!Steerlab's )(?<![\w/.-])docs/(?=[\w-]+\.md)")
 
 
 def _count(n: int, noun: str) -> str:
@@ -765,8 +793,8 @@ def _figures(images: dict[str, str | None]) -> list[str]:
             "parameters",
             "Arm-model parameters per condition (log scale). Boxes: the subjects' "
             "estimates; grey bars: each estimate ± its SEM (Cramér–Rao bound of the fit, "
-            "from the measured noise of Ĥ, see docs/method-estimator.md); black: the group "
-            "fit ± SEM; red ×: estimates the data do not determine (at a search bound or "
+            "from the measured noise of Ĥ, see Steerlab's docs/method-estimator.md); black: "
+            "the group fit ± SEM; red ×: estimates the data do not determine (at a search bound or "
             "SEM ≥ value), counted and left out of boxes and statistics. Last panel: "
             "I<sub>i</sub>, one per subject (joint fit over its conditions).",
         ),
@@ -1308,10 +1336,34 @@ def _weighting_section(res: StudyResults) -> str:
         f"<p>Top line of each cell: the default, {_e(WEIGHTING_NAMES.get(main, main))}; "
         f"bottom: {_e(WEIGHTING_NAMES.get(other, other))}. Group fits per condition, with the "
         "median over subjects of their own VAF. Red: the two differ by more than "
-        f"{WEIGHTING_DISAGREEMENT_SEMS:g}× the larger SEM. Of the {len(subj)} subject fits, "
-        f"{len(dis)} change by more than that on some parameter (results.json, "
-        "<code>weighting_comparison</code>). Why the default is maximum likelihood: "
-        "docs/method-estimator.md.</p>" + _table(header, rows) + listing
+        f"{WEIGHTING_DISAGREEMENT_SEMS:g}× the larger SEM.</p>"
+        f"<p>{_weighting_meaning(wc)}</p>" + _table(header, rows) + listing
+    )
+
+
+def _weighting_meaning(wc: dict[str, Any]) -> str:
+    """What the subject fits that change with the weighting say: which fit to trust, and why
+    a difference beyond the SEMs is expected rather than a sign of unreliable fits."""
+    n, k = wc["n_subject_fits"], wc["n_subject_fits_that_change"]
+    ml = "the default" if wc["default"] == "inverse_variance" else "the other weighting"
+    trust = (
+        f"Trust maximum likelihood ({ml}); the paper's weighting is shown to compare with the "
+        "paper's method. Why: Steerlab's docs/method-estimator.md, section 1."
+    )
+    if not k:
+        none = "The subject fit does not" if n == 1 else f"None of the {n} subject fits"
+        return f"{none} change{'s' if n > 1 else ''} by more than that. {trust}"
+    most = ", ".join(f"{_sym(p)} {c}×" for p, c in wc["changed_parameters"].items())
+    return (
+        f"Of the {n} subject fits, {k} change by more than that on some parameter ({most}; "
+        "each of them in results.json, <code>weighting_comparison</code>). This is expected "
+        "and does not make the fits unreliable: the two weightings are different estimators "
+        "of the same parameters. Maximum likelihood weights each band by its measured noise. "
+        "The paper's coherence × 1/f does not: it favours the low bands, where the remnant "
+        "dominates, while the contact parameters (b<sub>c</sub>, k<sub>c</sub>) show only at "
+        "high frequency, so its estimates scatter more and are biased, most of all the "
+        "contact parameters (on Steerlab's simulator: the paper columns of the "
+        "estimator-efficiency benchmark, Steerlab's docs/benchmarks.md). " + trust
     )
 
 
@@ -1408,10 +1460,14 @@ def _loo_table(res: StudyResults) -> str:
 
 def _anova_table(res: StudyResults) -> str:
     rows = []
+    # Quantities without an ANOVA are named once per reason above the table, not as rows of
+    # dashes that each repeat the same long sentence (on a one-condition study, all of them).
+    not_run: dict[str, list[str]] = {}
     for q in res.statistics.values():
         a = q.anova
         if a is None:
-            rows.append([_prose(q.label), _e(q.unit)] + ["–"] * 10 + [_prose("; ".join(q.errors))])
+            why = "; ".join(q.errors) or "no reason recorded"
+            not_run.setdefault(why, []).append(_prose(q.label))
             continue
         sph = a.sphericity
         sig = a.p_gg < ALPHA
@@ -1423,7 +1479,7 @@ def _anova_table(res: StudyResults) -> str:
                 _prose(q.label),
                 _e(q.unit),
                 str(a.n_subjects),
-                _fixed(a.F, 2),
+                _num(a.F),
                 str(a.df1),
                 str(a.df2),
                 _p(a.p),
@@ -1435,11 +1491,21 @@ def _anova_table(res: StudyResults) -> str:
                 f'<span class="small">{_e(means)}</span>',
             ]
         )
+    head = '<h2 id="anova">Repeated-measures ANOVA over the conditions</h2>'
+    missing = "".join(
+        (
+            f'<p class="bad">Not computed for {", ".join(labels)}: {_prose(why)}.</p>'
+            if rows
+            else f'<p class="bad">No statistics could be computed: {_prose(why)}.</p>'
+        )
+        for why, labels in not_run.items()
+    )
+    if not rows:
+        return head + missing
     return (
-        '<h2 id="anova">Repeated-measures ANOVA over the conditions</h2>'
-        "<p>One value per subject and condition (repetitions pooled). p<sub>GG</sub>: "
-        "Greenhouse–Geisser corrected; bold when &lt; α. Page: one-sided trend test for a "
-        f"rise from RT to PT. {_prose(_inertia_sentence(res))}</p>"
+        head + missing + "<p>One value per subject and condition (repetitions pooled). "
+        "p<sub>GG</sub>: Greenhouse–Geisser corrected; bold when &lt; α. Page: one-sided trend "
+        f"test for a rise from RT to PT. {_prose(_inertia_sentence(res))}</p>"
         + _table(
             [
                 "quantity",
@@ -1492,7 +1558,10 @@ def _pairwise_summary(res: StudyResults) -> str:
             ]
         )
     if not rows:
-        return '<h2 id="pairwise">Pairwise comparisons</h2><p>Not computed.</p>'
+        return (
+            '<h2 id="pairwise">Pairwise comparisons</h2><p>Not computed (why: under the '
+            'RM-ANOVA, <a href="#anova">above</a>).</p>'
+        )
     return (
         '<h2 id="pairwise">Pairwise comparisons (paired t-tests, Bonferroni)</h2>'
         f"<p>Pairs of conditions whose difference is significant (Bonferroni-corrected "
@@ -1636,7 +1705,7 @@ def _provenance_section(res: StudyResults) -> str:
         f"<p>Generated {_e(prov.get('generated_utc'))} from "
         f"<code>{_e(prov.get('session_dir'))}</code>. Software: {_e(sw)}. "
         f"Analysis time: {_e(timings)}. Every number is in <code>{RESULTS_JSON}</code> "
-        f"(keys documented in docs/results.md); per-subject values also in "
+        f"(keys documented in Steerlab's docs/results.md); per-subject values also in "
         f"<code>{PER_SUBJECT_CSV}</code>.</p>"
         + _table(
             [

@@ -855,6 +855,39 @@ def verdict(fit: RigFit, tol: Tolerances) -> list[Check]:
     return out
 
 
+NOT_VALID = "NOT VALID (hands on the wheel)"
+
+
+def hands_on(fit: RigFit) -> bool:
+    """Whether the recording shows hands on the wheel (:func:`hands_on_evidence`)."""
+    return bool(fit.prep.warnings)
+
+
+def verdict_status(fit: RigFit, checks: list[Check]) -> str:
+    """The verdict: "PASS", "FAIL" or "NOT VALID". A held wheel's values are those of the wheel and
+    the arm together: judging them against the rig's tolerances would pass or fail the arm,
+    so such a recording gets no pass or fail at all."""
+    if hands_on(fit):
+        return "NOT VALID"
+    return "PASS" if all(c.passed for c in checks) else "FAIL"
+
+
+def verdict_line(fit: RigFit, checks: list[Check]) -> str:
+    """The verdict in words, as printed and as the page's headline: "PASS", "FAIL (names of
+    the failed checks)" or :data:`NOT_VALID`."""
+    status = verdict_status(fit, checks)
+    if status == "NOT VALID":
+        return NOT_VALID
+    if status == "FAIL":
+        return "FAIL (" + ", ".join(c.name for c in checks if not c.passed) + ")"
+    return status
+
+
+def format_vaf(v: float) -> str:
+    """The VAF as every output writes it (terminal, page, figure): two decimals."""
+    return f"{v:.2f} %"
+
+
 def fit_warnings(fit: RigFit, checks: list[Check]) -> list[str]:
     """What makes the result unfit for use: signs of hands on the wheel, and values the
     recording does not determine (an SEM larger than the value itself and than the tolerance
@@ -868,9 +901,9 @@ def fit_warnings(fit: RigFit, checks: list[Check]) -> list[str]:
         if sem > abs(c.value) and sem > c.limit:
             unit = UNITS[c.name]
             out.append(
-                f"{LABELS[c.name]}: its SEM ({sem:.2g} {unit}) exceeds the value itself "
-                f"({c.value:.3g} {unit}) and the tolerance ({c.limit:.3g} {unit}): the recording "
-                "does not determine it, and its verdict means nothing"
+                f"{LABELS[c.name]}: its SEM ({_g(sem, 2)} {unit}) exceeds the value itself "
+                f"({_g(c.value, 3)} {unit}) and the tolerance ({_g(c.limit, 3)} {unit}): the "
+                "recording does not determine it, and its verdict means nothing"
             )
     return out
 
@@ -897,38 +930,65 @@ def _figure(fit: RigFit, path: Path) -> None:
     for a, b in zip(out[::2], out[1::2], strict=True):  # stretches left out of the fit
         for x in ax:
             x.axvspan(p.time_s[a], p.time_s[min(b, len(p.time_s) - 1)], color="0.9", lw=0)
-    ax[0].set_title(f"rig check: VAF {fit.vaf_percent:.2f} % (grey: left out, gaps)")
+    ax[0].set_title(f"rig check: VAF {format_vaf(fit.vaf_percent)} (grey: left out, gaps)")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
 
+def _g(v: float, digits: int) -> str:
+    """``digits`` significant digits, as ``:g`` but in plain notation for ordinary magnitudes
+    (130, 0.00018), as the report writes numbers; a power of ten only outside 1e-4…1e6."""
+    if not math.isfinite(v) or v == 0:
+        return f"{v:g}"
+    r = float(f"{v:.{digits}g}")
+    if 1e-4 <= abs(r) < 1e6:
+        return np.format_float_positional(r, trim="-")
+    return f"{v:.{digits}g}"
+
+
 def _fmt(v: float) -> str:
-    return f"{v:.4g}"
+    return _g(v, 4)
 
 
 def format_pm(v: float, sem: float | None) -> str:
     """A value with its SEM, the value to the SEM's second significant digit."""
     if sem is None or not sem > 0:
-        return f"{v:.4g} (at a bound)" if sem is None else f"{v:.4g}"
+        return f"{_g(v, 4)} (at a bound)" if sem is None else _g(v, 4)
     decimals = max(0, 1 - math.floor(math.log10(sem)))
     if decimals > 8:
-        return f"{v:.6g} ± {sem:.2g}"
-    return f"{v:.{decimals}f} ± {sem:.2g}"
+        return f"{_g(v, 6)} ± {_g(sem, 2)}"
+    return f"{v:.{decimals}f} ± {_g(sem, 2)}"
 
 
 def _html(fit: RigFit, checks: list[Check], tol_source: str) -> str:
-    ok = all(c.passed for c in checks)
+    status = verdict_status(fit, checks)
+    judged = status != "NOT VALID"
     rows = []
     for c in checks:
-        val = format_pm(c.value, fit.sem[c.name]) if c.name in fit.sem else _fmt(c.value)
-        unit = UNITS.get(c.name, "%")
+        if c.name in fit.sem:
+            val = f"{format_pm(c.value, fit.sem[c.name])} {UNITS.get(c.name, '%')}"
+        elif c.name == "vaf_percent":
+            val = format_vaf(c.value)
+        else:
+            val = f"{_fmt(c.value)} {UNITS.get(c.name, '%')}"
         label = LABELS.get(c.name, "VAF")
+        if not judged:
+            cell = "<td>not judged</td>"
+        else:
+            cell = f"<td class={'ok' if c.passed else 'bad'}>{'pass' if c.passed else 'FAIL'}</td>"
         rows.append(
-            f"<tr><td>{html.escape(label)}</td><td>{val} {unit}</td><td>{_fmt(c.nominal)}</td>"
-            f"<td>{html.escape(c.rule)}</td><td class={'ok' if c.passed else 'bad'}>"
-            f"{'pass' if c.passed else 'FAIL'}</td></tr>"
+            f"<tr><td>{html.escape(label)}</td><td>{val}</td><td>{_fmt(c.nominal)}</td>"
+            f"<td>{html.escape(c.rule)}</td>{cell}</tr>"
         )
+    headline = html.escape(NOT_VALID if not judged else status)
+    not_valid = (
+        "<p class=bad>The recording shows hands on the wheel (warnings below): the values are "
+        "those of the wheel and the arm together, not the rig's, so they are not judged "
+        "against the tolerances. Record again with the hands off.</p>"
+        if not judged
+        else ""
+    )
     warned = fit_warnings(fit, checks)
     notes = (
         "".join(
@@ -947,8 +1007,8 @@ def _html(fit: RigFit, checks: list[Check], tol_source: str) -> str:
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>Rig check</title>
 <style>body{{font-family:sans-serif;max-width:62em;margin:2em auto}}td,th{{padding:.2em .7em;
 text-align:left}}.ok{{color:#070}}.bad{{color:#b00;font-weight:bold}}</style></head><body>
-<h1>Rig check: <span class={"ok" if ok else "bad"}>{"PASS" if ok else "FAIL"}</span></h1>
-{warning_box}
+<h1>Rig check: <span class={"ok" if status == "PASS" else "bad"}>{headline}</span></h1>
+{not_valid}{warning_box}
 <p>Recording: <code>{html.escape(fit.source)}</code>.
 Nominal wheel: {html.escape(fit.nominal.source)}. Tolerances: {html.escape(tol_source)}.</p>
 <p>Model: I·ω' = lag<sub>τ</sub>(T<sub>p</sub> − b·ω − k·θ) + T<sub>0</sub>
@@ -960,7 +1020,8 @@ The lag is reported as its continuous-time equivalent, h/(e<sup>h/τ</sup> − 1
 <table><tr><th>quantity</th><th>measured</th><th>nominal</th><th>tolerance</th><th>verdict</th></tr>
 {"".join(rows)}</table>
 <p>At a bound of the fit (SEM not meaningful): {", ".join(fit.at_bound) or "none"}.</p>
-<h2>Fit and residual</h2><img src="{FIGURE}" alt="fit" style="max-width:100%">
+<h2>Fit and residual</h2><img src="{FIGURE}" alt="The perturbation torque, the measured and
+the model's wheel angle, and their difference against time" style="max-width:100%">
 <h2>Notes on the recording</h2><ul>{notes}</ul>
 <p>Use the result: <code>steerlab simulate --rig-model {RIG_JSON}</code>; <code>steerlab run
 --rig-check {RIG_JSON}</code> records it in the session file.</p></body></html>
@@ -976,8 +1037,11 @@ def write_outputs(
     out.mkdir(parents=True, exist_ok=True)
     checks = verdict(fit, tol)
     d = fit.to_dict()
+    status = verdict_status(fit, checks)
     d["verdict"] = {
-        "passed": all(c.passed for c in checks),
+        "passed": status == "PASS",
+        "status": status,
+        "not_valid_reason": "hands on the wheel" if status == "NOT VALID" else None,
         "tolerances": tol.__dict__,
         "tolerances_source": tol_source,
         "checks": [c.__dict__ for c in checks],
@@ -1128,9 +1192,13 @@ def summary(fit: RigFit, checks: list[Check]) -> str:
         lines.append(f"  {LABELS[p]:<22} {format_pm(fit.values[p], fit.sem[p])} {UNITS[p]}")
     off = format_pm(fit.offset_nm, fit.offset_sem)
     lines.append(f"  {'torque offset T_0':<22} {off} N·m (not judged)")
-    lines.append(f"  {'VAF':<22} {fit.vaf_percent:.4f} %")
-    failed = [c.name for c in checks if not c.passed]
-    lines.append("verdict: " + ("PASS" if not failed else "FAIL (" + ", ".join(failed) + ")"))
+    lines.append(f"  {'VAF':<22} {format_vaf(fit.vaf_percent)}")
+    lines.append("verdict: " + verdict_line(fit, checks))
+    if hands_on(fit):
+        lines.append(
+            "  the values are the wheel's and the arm's together, not the rig's: not judged "
+            "against the tolerances"
+        )
     lines += [f"warning: {w}" for w in fit_warnings(fit, checks)]
     return "\n".join(lines)
 

@@ -267,7 +267,7 @@ def test_index_html_is_self_contained_with_figures_and_tables(report, results):
     page = report[0].index_html.read_text(encoding="utf-8")
     for name in FIGURE_IDS:
         assert re.search(
-            rf'<figure id="fig-{name}"><img alt="{name}" '
+            rf'<figure id="fig-{name}"><img alt="[^"]+" '
             r'src="data:image/png;base64,[A-Za-z0-9+/=]{1000,}"',
             page,
         ), name
@@ -574,8 +574,52 @@ def test_read_this_first_counts_and_links_instead_of_listing_names(report):
         words = html.unescape(re.sub(r"<[^>]+>", "", li))
         assert len(words) < 300, words
         assert not re.search(r"\bS\d\d [A-Z]+\d*:", words), words  # no "S01 RT: k_c" lists
-    weighting = [li for li in items if "weighting" in li]
-    assert all('href="#weighting"' in li for li in weighting)
+
+
+def test_the_weighting_comparison_is_explained_where_it_is_shown_not_at_the_top(report, results):
+    """Subject fits that change with the other weighting are expected (the paper's weighting is
+    a different, less efficient estimator) and nothing a reader can act on: not in the box on
+    top nor in results.json's warnings; the two-weightings section says which fit to trust."""
+    page = _page(report)
+    assert "weighting" not in _read_first(page)
+    assert not any("weighting" in w for w in results["warnings"])
+    wc = results["weighting_comparison"]
+    subj = [c for c in wc["cells"] if c["subject"] != "group"]
+    assert wc["n_subject_fits"] == len(subj)
+    assert wc["n_subject_fits_that_change"] == sum(1 for c in subj if c["disagree"])
+    assert sum(wc["changed_parameters"].values()) == sum(len(c["disagree"]) for c in subj)
+    start = page.index('id="weighting"')
+    section = _visible(page[start : page.index("<h2", start + 10)])
+    if wc["n_subject_fits_that_change"]:
+        assert "This is expected and does not make the fits unreliable" in section
+    assert "Trust maximum likelihood (the default)" in section
+    assert "Steerlab's docs/method-estimator.md" in section
+
+
+def test_figures_have_descriptions_for_their_alt_text(report):
+    alts = re.findall(r'<img alt="([^"]*)"', _page(report))
+    assert len(alts) == len(FIGURE_IDS)
+    for alt in alts:
+        assert "_" not in alt and len(alt.split()) >= 6, alt
+
+
+def test_the_page_names_the_docs_it_cites_as_steerlabs(report):
+    text = _visible(_page(report))
+    cited = [m.start() for m in re.finditer(r"docs/\w", text)]
+    assert cited
+    for i in cited:
+        assert text[max(i - 11, 0) : i] == "Steerlab's ", text[max(i - 60, 0) : i + 40]
+
+
+def test_f_is_written_alike_in_the_checks_and_the_anova_table(report):
+    page = _page(report)
+    fs = set(re.findall(r"F = ([\d.]+)", _visible(page[: page.index('id="anova"')])))
+    assert fs
+    start = page.index('id="anova"')
+    table = page[start : page.index("</table>", start)]
+    cells = re.findall(r"<td[^>]*>([^<]*)</td>", table)
+    for f in fs:
+        assert f in cells, (f, cells[:20])
 
 
 def test_no_program_notation_in_the_visible_text(report):
@@ -683,3 +727,68 @@ def test_a_part_that_could_not_be_built_is_named_at_the_top_with_why(one_trial_r
     assert "could not be checked" in box  # the checks that need more conditions
     assert "order –" not in page and "– left out" not in page
     assert re.search(r"LPV.*not built: a polynomial of order 2", _visible(page))
+
+
+def test_one_conditions_statistics_say_why_once_instead_of_a_table_of_dashes(one_trial_report):
+    page = one_trial_report.index_html.read_text(encoding="utf-8")
+    start = page.index('id="anova"')
+    section = page[start : page.index("<h2", start + 10)]
+    text = html.unescape(re.sub(r"<[^>]+>", "", section))
+    assert "No statistics could be computed" in text
+    assert text.count("need at least two conditions") == 1, text
+    assert "<table" not in section
+
+
+@pytest.fixture(scope="module")
+def one_trial_figures(one_trial_report):
+    from steerlab.analysis import figures as F
+
+    res = one_trial_report.results
+    figs = {
+        "subject_admittance": F.subject_admittance(res),
+        "parameters": F.parameter_boxplots(res),
+        "admittance": F.admittance(res),
+    }
+    for fig in figs.values():
+        fig.canvas.draw()
+    return figs
+
+
+def _drawn_labels(fig) -> list:
+    """The texts a reader sees: titles, axis labels, legends and the tick labels in view."""
+    out = [t for t in (fig._suptitle, fig._supylabel) if t is not None]
+    out += [t for leg in fig.legends for t in leg.get_texts()]
+    for ax in fig.axes:
+        if not ax.get_visible():
+            continue
+        out += [ax.title, ax.xaxis.label, ax.yaxis.label]
+        if ax.get_legend() is not None:
+            out += ax.get_legend().get_texts()
+        for axis, (lo, hi) in ((ax.xaxis, ax.get_xlim()), (ax.yaxis, ax.get_ylim())):
+            for tick in axis.get_major_ticks() + axis.get_minor_ticks():
+                if min(lo, hi) <= tick.get_loc() <= max(lo, hi) and tick.label1.get_visible():
+                    out.append(tick.label1)
+    return [t for t in out if t.get_visible() and t.get_text()]
+
+
+def test_one_subjects_figures_show_their_titles_whole(one_trial_figures):
+    for name, fig in one_trial_figures.items():
+        renderer = fig.canvas.get_renderer()
+        w, h = fig.bbox.width, fig.bbox.height
+        for t in _drawn_labels(fig):
+            b = t.get_window_extent(renderer)
+            inside = b.x0 >= -1 and b.y0 >= -1 and b.x1 <= w + 1 and b.y1 <= h + 1
+            assert inside, (name, t.get_text(), b.bounds, (w, h))
+
+
+def test_log_axes_write_ordinary_magnitudes_as_plain_numbers(one_trial_figures):
+    """An axis spanning less than a decade labels its minor ticks: "1.2", never "1.2 × 10⁰"."""
+    labels = [t.get_text() for f in one_trial_figures.values() for t in _drawn_labels(f)]
+    assert not [s for s in labels if "10^{0}" in s or "\\times" in s], labels
+    fig = one_trial_figures["parameters"]
+    for ax in fig.axes[:4]:  # b_i, k_i, b_c, k_c on log axes, each within a decade here
+        lo, hi = ax.get_ylim()
+        ticks = ax.yaxis.get_major_ticks() + ax.yaxis.get_minor_ticks()
+        shown = [t.label1.get_text() for t in ticks if lo <= t.get_loc() <= hi]
+        shown = [s for s in shown if s]
+        assert shown and all(re.fullmatch(r"\d+(\.\d+)?", s) for s in shown), shown

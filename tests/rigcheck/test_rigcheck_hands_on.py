@@ -1,9 +1,11 @@
 """A rig check on a recording with hands on the wheel warns, in what it prints and in its page;
-so does one whose values the recording does not determine. A hands-off recording does not."""
+so does one whose values the recording does not determine. A hands-off recording does not.
+With hands on the wheel the verdict is NOT VALID, not a pass or fail against the tolerances."""
 
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import replace
 
 import h5py
@@ -45,11 +47,35 @@ def _rig_check(capsys, out, *argv):
     printed = capsys.readouterr()
     assert code == 0, printed.err
     page = (out / "index.html").read_text()
-    warnings = json.loads((out / "rig.json").read_text())["warnings"]
-    return printed.out, page, warnings
+    rig = json.loads((out / "rig.json").read_text())
+    return printed.out, page, rig
 
 
-def _assert_hands_on(printed, page, warnings):
+def _vaf_shown(printed: str, page: str) -> tuple[str, str]:
+    term = re.search(r"^\s*VAF\s+(\S+ %)$", printed, re.M)
+    html = re.search(r"<tr><td>VAF</td><td>([^<]+)</td>", page)
+    assert term and html, (printed, page)
+    return term.group(1), html.group(1)
+
+
+def _assert_not_valid(printed, page, rig):
+    """The verdict is NOT VALID everywhere, and no check is called a pass or a FAIL."""
+    assert "verdict: NOT VALID (hands on the wheel)" in printed, printed
+    assert "FAIL" not in printed and "PASS" not in printed, printed
+    assert "Rig check: <span class=bad>NOT VALID (hands on the wheel)</span>" in page
+    assert "FAIL" not in page and ">pass<" not in page and "not judged" in page
+    v = rig["verdict"]
+    assert v["status"] == "NOT VALID" and v["passed"] is False
+    assert v["not_valid_reason"] == "hands on the wheel"
+    assert len(v["checks"]) == 7 and "tolerances" in v  # the comparisons stay, for the record
+    term, html = _vaf_shown(printed, page)
+    assert term == html == f"{rig['vaf_percent']:.2f} %", (term, html)
+    # A held wheel's SEMs are large: written as numbers (± 130), not as 1.3e+02.
+    assert not re.search(r"\de[+-]\d", printed + page), printed
+
+
+def _assert_hands_on(printed, page, rig):
+    warnings = rig["warnings"]
     assert "warning: hands on the wheel? driver_torque_Nm varies by" in printed, printed
     assert "warning: hands on the wheel? grip_force_N averages" in printed, printed
     # The values it cannot determine (a held wheel's stiffness and imbalance, here).
@@ -62,9 +88,10 @@ def _assert_hands_on(printed, page, warnings):
 
 def test_a_held_trial_of_a_session_file_warns(held, tmp_path, capsys):
     path, key = held
-    printed, page, warnings = _rig_check(capsys, tmp_path / "rc", "--recording", path,
-                                         "--trial", key)  # fmt: skip
-    _assert_hands_on(printed, page, warnings)
+    printed, page, rig = _rig_check(capsys, tmp_path / "rc", "--recording", path,
+                                    "--trial", key)  # fmt: skip
+    _assert_hands_on(printed, page, rig)
+    _assert_not_valid(printed, page, rig)
     assert "the trial is not a hands-off trial" in printed
 
 
@@ -73,13 +100,21 @@ def test_a_held_trial_exported_as_csv_warns(held, tmp_path, capsys):
     assert main(["export", str(path.parent), "--out", str(tmp_path / "csv")]) == 0
     (csv,) = (tmp_path / "csv").glob("*_rep1.csv")
     capsys.readouterr()
-    _assert_hands_on(*_rig_check(capsys, tmp_path / "rc", "--recording", csv))
+    shown = _rig_check(capsys, tmp_path / "rc", "--recording", csv)
+    _assert_hands_on(*shown)
+    _assert_not_valid(*shown)
 
 
 def test_a_hands_off_recording_has_no_warning(tmp_path, capsys):
     # Friction and imbalance near zero carry SEMs larger than themselves but well inside their
     # tolerances: a clear "none", not a warning.
     path = hands_off_trial(tmp_path / "rc.h5", world(), periods=1)
-    printed, page, warnings = _rig_check(capsys, tmp_path / "rc", "--recording", path)
-    assert "warning" not in printed and warnings == [], printed
+    printed, page, rig = _rig_check(capsys, tmp_path / "rc", "--recording", path)
+    assert "warning" not in printed and rig["warnings"] == [], printed
     assert "Warnings</h2>" not in page and "<li>none</li>" in page
+    v = rig["verdict"]
+    assert v["status"] in ("PASS", "FAIL") and v["not_valid_reason"] is None
+    assert v["passed"] is (v["status"] == "PASS") is all(c["passed"] for c in v["checks"])
+    assert f"verdict: {v['status']}" in printed and "NOT VALID" not in printed + page
+    term, html = _vaf_shown(printed, page)
+    assert term == html == f"{rig['vaf_percent']:.2f} %", (term, html)
