@@ -25,7 +25,7 @@ from steerlab.analysis.armfit import arm_admittance
 from steerlab.analysis.lpv import admittance_response
 from steerlab.analysis.periods import PeriodSelection
 from steerlab.analysis.pipeline import PARAMETER_UNITS, StudyResults, leave_one_out_models
-from steerlab.analysis.report import method_name
+from steerlab.analysis.report import in_condition_order, method_name
 from steerlab.protocols.records import TrialRecord
 
 DPI = 96
@@ -87,8 +87,7 @@ def symbol(name: str) -> str:
 def points_in_condition_order(res: StudyResults) -> list:
     """The operating points in the protocol's condition order (the results keep them by μ),
     so that legends list the conditions as every table does."""
-    rank = {c: i for i, c in enumerate(res.conditions)}
-    return sorted(res.points, key=lambda p: rank.get(p.condition, len(rank)))
+    return in_condition_order(res.points, res.conditions, lambda p: p.condition)
 
 
 def _fine_grid(f: np.ndarray) -> np.ndarray:
@@ -457,10 +456,7 @@ def leave_one_out(res: StudyResults) -> Figure | None:
     if res.lpv is None or res.lpv.leave_one_out is None:
         return None
     folds = leave_one_out_models(res.lpv, res.points, order=res.lpv.table.order)
-    rank = {c: i for i, c in enumerate(res.conditions)}
-    left_out = sorted(
-        dict.fromkeys(p.condition for p, _, _ in folds), key=lambda c: rank.get(c, len(rank))
-    )
+    left_out = in_condition_order(dict.fromkeys(p.condition for p, _, _ in folds), res.conditions)
     if not left_out:
         return None
     loo = res.lpv.leave_one_out

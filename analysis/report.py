@@ -26,10 +26,10 @@ import shutil
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -616,10 +616,17 @@ def _figure(images: dict[str, str | None], name: str, caption: str) -> str:
     )
 
 
-def _in_order(keys: Sequence[str], conditions: Sequence[str]) -> list[str]:
-    """``keys`` in the protocol's condition order, anything else after them."""
+T = TypeVar("T")
+
+
+def in_condition_order(
+    items: Iterable[T], conditions: Sequence[str], condition: Callable[[T], str] = str
+) -> list[T]:
+    """``items`` in the protocol's condition order (``condition`` names an item's), anything
+    else after them."""
     rank = {c: i for i, c in enumerate(conditions)}
-    return sorted(keys, key=lambda k: rank.get(k, len(rank)))  # stable: others keep theirs
+    # Stable: items of one condition, and those of none, keep their order.
+    return sorted(items, key=lambda x: rank.get(condition(x), len(rank)))
 
 
 # ------------------------------------------------------------------------------------------
@@ -938,7 +945,8 @@ def _check_evidence(c: Any, conds: Sequence[str]) -> str:
         )
     if "condition_means_percent" in v:
         d = v["condition_means_percent"]
-        txt = "mean VAF: " + ", ".join(f"{k} {d[k]:.0f} %" for k in _in_order(list(d), conds))
+        means = (f"{k} {d[k]:.0f} %" for k in in_condition_order(d, conds))
+        txt = "mean VAF: " + ", ".join(means)
         ns = v.get("not_significantly_lower_than") or []
         return _e(txt) + (f"; RT not lower than {_e(', '.join(ns))}" if ns else "")
     if "lti_fit_percent" in v:
@@ -1007,7 +1015,7 @@ def _values_prose(values: dict[str, Any], conds: Sequence[str]) -> str:
             label = _prose(VALUE_LABELS.get(k, k.replace("_", " ")))
         if isinstance(v, dict):
             inner = []
-            for a in _in_order(list(v), conds):
+            for a in in_condition_order(list(v), conds):
                 b = v[a]
                 if isinstance(b, dict):
                     sub = ", ".join(f"{_e(method_name(m))} {_num(x)}" for m, x in b.items())
@@ -1373,7 +1381,7 @@ def _table2(res: StudyResults) -> str:
             '<h2 id="table2">Table 2</h2><p class="bad">No LPV model could be built: '
             f"{_prose(res.lpv_error or 'no operating points')}.</p>"
         )
-    order = _in_order([r.condition for r in res.lpv.table.rows], res.conditions)
+    order = in_condition_order([r.condition for r in res.lpv.table.rows], res.conditions)
     rows_by = {r.condition: r for r in res.lpv.table.rows}
     header = ["FIT%"] + [_e(c) for c in order]
     rows = [["operating point μ (N)"] + [_fixed(rows_by[c].mu_N, 1) for c in order]]
@@ -1415,9 +1423,9 @@ def _loo_table(res: StudyResults) -> str:
         why = res.lpv.leave_one_out_skipped if res.lpv else res.lpv_error
         return f'<h2 id="loo">Leave-one-out</h2><p>Not computed: {_prose(why)}.</p>'
     vaf = {(v.method, v.condition): v for v in res.loo_vaf}
-    rank = {c: i for i, c in enumerate(res.conditions)}
+    by_method = sorted(loo.results, key=lambda r: r.method)
     rows = []
-    for r in sorted(loo.results, key=lambda r: (rank.get(r.condition, len(rank)), r.method)):
+    for r in in_condition_order(by_method, res.conditions, lambda r: r.condition):
         v = vaf.get((r.method, r.condition))
         rows.append(
             [
@@ -1429,7 +1437,7 @@ def _loo_table(res: StudyResults) -> str:
                 _fixed(r.fit_vs_local_percent, 2),
                 _fixed(None if v is None else v.median_vaf_percent, 1),
                 _fixed(None if v is None else v.median_in_sample_vaf_percent, 1),
-                _e(", ".join(_in_order(list(r.trained_on), res.conditions))),
+                _e(", ".join(in_condition_order(list(r.trained_on), res.conditions))),
             ]
         )
     ends = "; ".join(f"{k}: {v}" for k, v in loo.not_left_out.items())

@@ -25,8 +25,8 @@ import math
 import os
 import shutil
 import tempfile
-import tomllib
 from collections import Counter
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +50,7 @@ from steerlab.protocols.datafile import (
 )
 from steerlab.protocols.names import UnsafeNameError, check_name, inside
 from steerlab.protocols.perturbation import PerturbationDesign
+from steerlab.protocols.protocol import load_protocol
 from steerlab.protocols.records import (
     CORE_CHANNELS,
     STATUS_ABORTED,
@@ -420,12 +421,12 @@ def _read_meta(path: Path) -> dict:
 def shipped_conditions() -> tuple[str, ...]:
     """The conditions of every protocol shipped with Steerlab (``protocols/*.toml``), in file
     order, each once."""
+    shipped = sorted(
+        f.name for f in resources.files("steerlab.protocols").iterdir() if f.name.endswith(".toml")
+    )
     names: dict[str, None] = {}
-    for toml_path in sorted(Path(__file__).parent.glob("*.toml")):
-        with open(toml_path, "rb") as fh:
-            doc = tomllib.load(fh)
-        for c in doc.get("conditions", []):
-            names[str(c["name"])] = None
+    for name in shipped:
+        names.update(dict.fromkeys(load_protocol(name).condition_names))
     return tuple(names)
 
 
@@ -605,8 +606,7 @@ _META_ONLY = {"units", "sign_conventions", "source", "dtypes", "marks", "trial_a
 def default_period_s() -> float:
     """The paper protocol's perturbation period: the analysis assumes it for a trial that
     carries no ``perturbation_design``."""
-    with open(Path(__file__).parent / "pronker2017.toml", "rb") as fh:
-        return float(tomllib.load(fh)["perturbation"]["period_s"])
+    return load_protocol().perturbation.period_s
 
 
 def _check_length(csv_path: Path, meta: dict, n: int, fs: float) -> None:
