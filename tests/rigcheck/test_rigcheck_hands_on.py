@@ -5,8 +5,10 @@ With hands on the wheel the verdict is NOT VALID, not a pass or fail against the
 from __future__ import annotations
 
 import json
+import os
 import re
 from dataclasses import replace
+from pathlib import Path
 
 import h5py
 import pytest
@@ -118,3 +120,28 @@ def test_a_hands_off_recording_has_no_warning(tmp_path, capsys):
     assert f"verdict: {v['status']}" in printed and "NOT VALID" not in printed + page
     term, html = _vaf_shown(printed, page)
     assert term == html == f"{rig['vaf_percent']:.2f} %", (term, html)
+
+
+REAL = Path(
+    os.environ.get(
+        "STEERLAB_REAL_SENSODRIVE",
+        Path(__file__).resolve().parents[3] / "shared" / "data" / "real-sensodrive",
+    )
+)
+
+
+@pytest.mark.skipif(
+    not (REAL / "sensodrive_handsoff.csv").is_file(),
+    reason=f"the real SensoDrive recording is not at {REAL} (set STEERLAB_REAL_SENSODRIVE)",
+)
+def test_a_real_hands_off_recording_is_judged_not_taken_for_hands_on(tmp_path, capsys):
+    # A real SENSO-Wheel, nobody touching it (the drive rendered 0.4 N·m·s/rad of damping):
+    # the hands-on evidence must not fire on a wheel we did not simulate.
+    out = tmp_path / "rc"
+    assert main(["rig-check", "--recording", str(REAL / "sensodrive_handsoff.csv"),
+                 "--out", str(out)]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    d = json.loads((out / "rig.json").read_text())
+    assert d["warnings"] == [] and "hands on" not in printed, printed
+    assert d["verdict"]["status"] in ("PASS", "FAIL") and "NOT VALID" not in printed
+    assert d["damping_Nms_per_rad"]["value"] == pytest.approx(0.4, rel=0.05)
