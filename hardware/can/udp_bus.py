@@ -88,15 +88,20 @@ class UdpLoopbackBus(can.BusABC):
         sock = self._sock
         if sock is None:
             raise can.CanOperationError("Cannot operate on a closed bus")
-        try:
-            ready, _, _ = select.select([sock], [], [], timeout)
-            if not ready:
-                return None, False
-            payload = sock.recv(64)
-        except (OSError, ValueError) as e:  # closed by shutdown() meanwhile
-            raise can.CanOperationError(f"{self.channel_info}: {e}") from e
-        if len(payload) != 8 + _FRAME.size or (payload[:8] == self._id and not self._own):
-            return None, False
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            # Our own frames come back from the group: skipped here, not returned as "nothing",
+            # so that a poll (timeout 0) still finds the frames queued behind one of them.
+            wait = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                ready, _, _ = select.select([sock], [], [], wait)
+                if not ready:
+                    return None, False
+                payload = sock.recv(64)
+            except (OSError, ValueError) as e:  # closed by shutdown() meanwhile
+                raise can.CanOperationError(f"{self.channel_info}: {e}") from e
+            if len(payload) == 8 + _FRAME.size and (payload[:8] != self._id or self._own):
+                break
         cid, flags, dlc, data, sent = _FRAME.unpack_from(payload, 8)
         msg = can.Message(
             timestamp=sent,
