@@ -127,8 +127,8 @@ def run_rig_check(
     import signal
 
     from steerlab.analysis.rigcheck import identify
-    from steerlab.hardware.live import ProcessLoop
     from steerlab.hardware.rig import load_rig
+    from steerlab.hardware.trial_loops import rig_loop
 
     protocol = load_protocol(protocol_path)
     rig = load_rig(rig_path)
@@ -150,7 +150,7 @@ def run_rig_check(
     plan = hands_off_plan(protocol, periods)
     say(f"bringing up the rig ({rig.source}) ...")
     say("RIG CHECK: let go of the wheel; nobody may touch it until the trial ends")
-    loop = ProcessLoop(rig_path, 1)
+    loop = rig_loop(rig_path, 1)
     extra = {"rig": rig.describe(), "realtime_tuning": loop.realtime, "hands_off_check": True}
     if rig.simulated:
         extra["simulated"] = True

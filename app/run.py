@@ -34,10 +34,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
-from steerlab.hardware.can.scaling import DriveScaling
-from steerlab.hardware.live import ProcessLoop
 from steerlab.hardware.realtime import realtime_summary, realtime_warnings
 from steerlab.hardware.rig import load_rig
+from steerlab.hardware.trial_loops import rig_loop
 from steerlab.protocols.datafile import (
     SessionFile,
     SessionWriter,
@@ -159,6 +158,27 @@ class RunError(ValueError):
     pass
 
 
+def wheel_notes(rig, protocol) -> list[str]:
+    """What the rig's drive renders of the protocol's wheel, said where it differs: a drive
+    without an inertia field (a SENSO-Wheel) leaves the subject the wheel's own."""
+    own = getattr(rig.drive, "wheel_inertia_kgm2", None)
+    if own is None:
+        return []
+    asked = protocol.wheel.inertia_kgm2
+    note = (
+        f"the {rig.drive.kind} drive renders no inertia: the subject feels the wheel's own "
+        f"{own:g} kg·m² ([drive] wheel_inertia_kgm2)"
+    )
+    if abs(own - asked) > 0.05 * asked:
+        note += (
+            f", not the protocol's {asked:g} kg·m²; the report and the diagnosis take the wheel "
+            "a rig check measured (docs/sensodrive.md)"
+        )
+    else:
+        note += f", as the protocol's {asked:g} kg·m² asks"
+    return [note]
+
+
 def run_session(
     rig_path: str | None,
     subject_number: int,
@@ -191,6 +211,14 @@ def run_session(
             f"the protocol ({protocol.source_path}) runs its loop at {protocol.loop_rate_hz:g} Hz "
             f"but the rig ({rig.source}) at {rig.loop_rate_hz:g} Hz; make them agree"
         )
+    if rig.drive.torque_sensor.source == "none":
+        raise RunError(
+            f'{rig.source}: [drive.torque_sensor] source = "none": this rig gives no driver '
+            "torque, which the admittance estimate needs; name a sensor or (SensoDrive) "
+            '"reconstructed" (docs/rig-config.md). A hands-off steerlab rig-check can run'
+        )
+    for note in wheel_notes(rig, protocol):
+        say(f"note: {note}")
     last_check = None
     if rig_check is not None:
         from steerlab.analysis.rigcheck import load_rig_model, rig_check_record
@@ -261,7 +289,7 @@ def _run(
     os.environ.setdefault(NO_NUMBA_HIGHLIGHTING, "1")
     try:
         say(f"bringing up the rig ({rig.source}) ...")
-        loop = ProcessLoop(rig_path, subject_number)
+        loop = rig_loop(rig_path, subject_number)
         say(realtime_summary(loop.realtime))
         for w in realtime_warnings(loop.realtime):
             say(f"warning: {w}")
@@ -271,9 +299,9 @@ def _run(
             extra.update({"simulated": True, "simulated_subject": loop.physiology})
         if last_check is not None:
             extra["rig_check"] = last_check
-        # The drive gives the angle as encoder counts × its scaling: stored as those counts
-        # (when exact; docs/data-format.md).
-        quanta = {"wheel_angle_rad": abs(DriveScaling(rig.drive).counts_to_angle(1))}
+        # The drive gives the angle as counts × its step: stored as those counts (when exact;
+        # docs/data-format.md).
+        quanta = {"wheel_angle_rad": rig.drive.angle_quantum_rad}
         writer = SessionWriter(path, extra_attributes=extra, lock=lock, quanta=quanta)
         engine.subscribe(writer)
         engine.subscribe(_reporter(say, len(plan.trials)))

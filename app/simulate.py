@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from steerlab.hardware.sim.physiology import PopulationSpread, make_population
-from steerlab.hardware.sim.rig import simulated_rig
 from steerlab.hardware.sim.world import WorldConfig
+from steerlab.hardware.trial_loops import simulated_loop
 from steerlab.protocols.datafile import (
     FORMAT,
     DataFileError,
@@ -66,8 +66,13 @@ def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | Non
     plan = build_plan(protocol, job.subject_number)
     path = session_path(job.out_dir, plan.subject)
     attempts = SessionFile(path).attempts() if (job.resume and path.exists()) else None
-    rig = simulated_rig(physiology, job.world, job.wheel or protocol.wheel, PopulationSpread())
-    loop = rig.device_loop(realtime=True) if job.realtime else rig.batch_loop()
+    loop, _ = simulated_loop(
+        physiology,
+        job.world,
+        job.wheel or protocol.wheel,
+        pace="paced" if job.realtime else "batch",
+        spread=PopulationSpread(),
+    )
     engine = SessionEngine(plan, loop, attempts=attempts)
     writer = SessionWriter(
         path,

@@ -120,7 +120,7 @@ def _loop_timing(condition: str) -> dict:
     """One driving trial in real time through the loop process (as ``steerlab run``)."""
     import json
 
-    from steerlab.hardware.live import ProcessLoop
+    from steerlab.hardware.trial_loops import rig_loop
     from steerlab.protocols.datafile import SessionFile, SessionWriter
     from steerlab.protocols.engine import SessionEngine
 
@@ -130,7 +130,7 @@ def _loop_timing(condition: str) -> dict:
     plan = replace(plan, trials=(spec,))
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "S01.h5"
-        loop = ProcessLoop(None, 1)
+        loop = rig_loop(None, 1)
         try:
             engine = SessionEngine(plan, loop)
             engine.subscribe(SessionWriter(path))

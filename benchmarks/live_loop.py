@@ -33,8 +33,9 @@ from dataclasses import replace
 from pathlib import Path
 
 from steerlab.benchmarks.machine import machine
-from steerlab.hardware.live import ProcessLoop
 from steerlab.hardware.realtime import REALTIME_ENV
+from steerlab.hardware.rig import load_rig
+from steerlab.hardware.trial_loops import rig_loop
 from steerlab.protocols.datafile import SessionFile, SessionWriter
 from steerlab.protocols.engine import SessionEngine
 from steerlab.protocols.protocol import load_protocol
@@ -83,7 +84,7 @@ def main(argv: list[str]) -> dict:
     drive_after: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "S01.h5"
-        loop = ProcessLoop(a.rig, 1, simulated_devices=a.simulated_devices)
+        loop = rig_loop(a.rig, 1, simulated_devices=a.simulated_devices)
         hogs = start_stress(a.stress)
         try:
             engine = SessionEngine(plan, loop)
@@ -118,7 +119,10 @@ def main(argv: list[str]) -> dict:
         "period_error_p50_ms": round(stats.get("period_error_p50_ms", float("nan")), 4),
         "period_error_max_ms": round(stats.get("period_error_max_ms", float("nan")), 3),
         "late_cycles": stats.get("late_cycles"),
+        "drive_kind": load_rig(a.rig).drive.kind,
+        # unanswered cycles: a CiA 402 drive's SYNCs, a SensoDrive's 0x201 requests
         "missed_tpdo": status.get("missed_tpdo"),
+        "missed_replies": status.get("missed_replies"),
         "glove_dropped_frames": status.get("glove_dropped_frames"),
         "glove_rate_hz": status.get("glove_rate_hz"),
         "loop_process_cpu_s": round(stats.get("loop_process_cpu_s", float("nan")), 2),

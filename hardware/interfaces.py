@@ -13,7 +13,7 @@ Units and signs at this boundary:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 
 @dataclass(frozen=True)
@@ -60,6 +60,56 @@ class TorqueSensor(Protocol):
 
     def zero(self) -> None:
         """Measure and store the offset; call with the wheel released."""
+
+
+@runtime_checkable
+class ColumnTorque(TorqueSensor, Protocol):
+    """A drive's driver-torque channel, zeroed from the values of the cycles just run."""
+
+    def clear_recent(self) -> None:
+        """Forget earlier values: the next zero() sees only the cycles that follow."""
+
+
+@runtime_checkable
+class RigDrive(WheelDrive, Protocol):
+    """A rig's drive of any kind (:mod:`hardware.drives`), as the live path uses it.
+
+    ``renders_wheel``: the drive renders the virtual wheel's spring and damper itself
+    (:meth:`set_wheel` puts them in its own fields), so the host's command carries only the
+    perturbation and the safety layer's terms; False: the host renders them in its command
+    (then :meth:`set_wheel` does nothing)."""
+
+    config: Any
+    renders_wheel: bool
+
+    @property
+    def torque_sensor(self) -> ColumnTorque:
+        """The driver torque (a sensor, or a reconstruction the rig file chose).
+
+        :raises hardware.can.DriveError: the rig file gives no way to obtain it."""
+        ...
+
+    @property
+    def angle_quantum_rad(self) -> float:
+        """The smallest angle step the drive reports (the session file's data-quality check)."""
+        ...
+
+    def set_wheel(self, stiffness_nm_per_rad: float, damping_nms_per_rad: float) -> None:
+        """The virtual wheel for the next trial; zero when a trial ends (``disable``)."""
+
+    def problem(self) -> str | None:
+        """A reason to stop the trial now (drive lost, faulted, unanswered), or None."""
+
+    def status(self) -> dict[str, Any]:
+        """The drive's state for the experimenter: at least ``drive_state``, ``drive_ok``,
+        ``drive_enabled`` and ``faults`` (a list of words)."""
+        ...
+
+    def drop_bus(self) -> None:
+        """Fault injection: the host's bus goes away under the driver (a bus-off)."""
+
+    def close(self) -> None:
+        """Disable if enabled, stop the driver's threads and close its bus. Never raises."""
 
 
 @runtime_checkable

@@ -18,6 +18,7 @@ emergency stop through a shared event that the loop checks every cycle.
 
 from __future__ import annotations
 
+import math
 import multiprocessing as mp
 import os
 import queue
@@ -26,25 +27,24 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import can
 import numpy as np
 import serial
 
-from steerlab.hardware.can import (
-    CiA402Drive,
-    DriveColumnTorque,
-    SharedPlant,
-    SimulatedDrive,
-    SimulatedTorqueSensor,
-    open_bus,
-)
+from steerlab.hardware.can.errors import DriveError
+from steerlab.hardware.drives import drive_kind
 from steerlab.hardware.glove.unit import SerialGloveUnit
+from steerlab.hardware.interfaces import ColumnTorque, RigDrive
 from steerlab.hardware.loop import DEFAULT_BLOCK_S, LOOP_CHANNELS, SPIN_S, DeviceLoop
 from steerlab.hardware.messages import Outbox, WriterGone, message_pipe
 from steerlab.hardware.rig import RigConfig, load_rig
 from steerlab.protocols.engine import LoopControl, TrialFault
 from steerlab.protocols.session import TrialSetup
+
+if TYPE_CHECKING:
+    from steerlab.hardware.sim.devices import SimulatedDevices
 
 ZEROING_S = 0.3
 
@@ -53,110 +53,52 @@ class RigError(RuntimeError):
     """The rig could not be brought up; the message says which device and why."""
 
 
-class WorldPlant:
-    """The simulated world behind the simulated drive's motor shaft (hardware.can.Plant)."""
-
-    def __init__(self, sim_rig, column_offset_nm: float, seed: int = 0) -> None:
-        self.sim = sim_rig
-        self.offset = column_offset_nm
-        self.released = False  # the simulated subject lets go while the sensor is zeroed
-        self._rng = np.random.default_rng(seed)
-        self._grip = (0.0, 0.0)
-        self._ready = False
-        sim_rig.world.warm_up(next(iter(sim_rig.subject.physiology.behaviour.values())))
-
-    def step(self, motor_torque_nm: float) -> None:
-        if self._ready and not self.released:
-            self.sim.world.step(motor_torque_nm)
-
-    def read(self) -> tuple[float, float, float, float]:
-        if not self._ready:
-            return 0.0, 0.0, 0.0, self.offset
-        r = self.sim.world.read()
-        self._grip = (float(r["grip_force_left_N"]), float(r["grip_force_right_N"]))
-        if self.released:
-            noise = self.sim.cfg.sensors.torque_noise_sd
-            column = self.offset + noise * self._rng.standard_normal()
-            return r["wheel_angle_rad"], 0.0, r["motor_torque_Nm"], column
-        return (
-            r["wheel_angle_rad"],
-            r["wheel_velocity_rad_s"],
-            r["motor_torque_Nm"],
-            r["driver_torque_Nm"] + self.offset,
-        )
-
-    def grip(self, _t: float) -> tuple[float, float]:
-        # Called by the glove simulator's thread: a cached pair, never the world itself.
-        return self._grip
-
-    def begin_trial(self, setup: TrialSetup) -> None:
-        self.sim.begin_trial(setup)
-        self._ready = True
-
-
 class RigDevices:
     """Everything a rig file names, opened and ready; ``close()`` releases it all.
+
+    The drive is of the kind the rig file names (:mod:`hardware.drives`); for a simulated rig
+    file, the simulated devices (:func:`hardware.sim.devices.simulated_devices`) are built here
+    too, on python-can's virtual bus and a pty, and the same drivers talk to them.
 
     ``lab``: the control socket of a simulated lab process (``hardware.sim.lab.LabClient``) whose
     devices ``rig`` (a lab's rig: udp_loopback channel, pty) reaches; the trial's setup and the
     sensor zeroing's "let go" are passed on to its simulated subject."""
 
     # Set once opened: a RigDevices that exists has both (close() also sees a partial one).
-    drive: CiA402Drive
+    drive: RigDrive
     glove: SerialGloveUnit
 
     def __init__(self, rig: RigConfig, *, subject_number: int = 1, lab=None) -> None:
         self.rig = rig
         self.lab = lab
-        self.plant: WorldPlant | None = None
-        self.node: SimulatedDrive | None = None
-        self.sensor_node: SimulatedTorqueSensor | None = None
-        self.glove_sim = None
+        self.simulated: SimulatedDevices | None = None
         self.physiology: dict | None = None
         self.hands_off = False  # the current trial is a rig check's: no gloves needed
-        self._buses: list[can.BusABC] = []
         drive_cfg = rig.drive
         try:
             port = rig.glove.port
             if rig.simulated:
-                from steerlab.hardware.glove.simulated import SimulatedGloveUnit
-                from steerlab.hardware.sim.physiology import make_population
-                from steerlab.hardware.sim.rig import simulated_rig
+                from steerlab.hardware.sim.devices import simulated_devices
 
-                sim = rig.simulation
-                assert sim is not None  # rig.simulated
-                phys = make_population(subject_number, seed=sim.seed)[subject_number - 1]
-                self.physiology = phys.to_dict()
-                sim_rig = simulated_rig(phys, sim.world_config(rig.loop_rate_hz))
-                self.plant = WorldPlant(sim_rig, sim.column_torque_offset_nm, seed=phys.seed)
                 # A channel of its own: two simulated rigs in one process must not cross-talk.
                 drive_cfg = replace(
                     drive_cfg, channel=f"{drive_cfg.channel}-{uuid.uuid4().hex[:8]}"
                 )
-                node_bus = can.Bus(
-                    interface="virtual", channel=drive_cfg.channel, receive_own_messages=False
+                channel = drive_cfg.channel
+                self.simulated = simulated_devices(
+                    rig,
+                    lambda: can.Bus(
+                        interface="virtual", channel=channel, receive_own_messages=False
+                    ),
+                    subject=subject_number,
+                    drive_config=drive_cfg,
                 )
-                self._buses.append(node_bus)
-                sensor_node = drive_cfg.torque_sensor.source == "node"
-                # A sensor node reads the plant on its own thread: both nodes go through one
-                # SharedPlant, which the drive node alone steps.
-                shared = SharedPlant(self.plant) if sensor_node else None
-                self.node = SimulatedDrive(node_bus, drive_cfg, shared or self.plant)
-                self.node.start()
-                if shared is not None:
-                    sensor_bus = can.Bus(
-                        interface="virtual", channel=drive_cfg.channel, receive_own_messages=False
-                    )
-                    self._buses.append(sensor_bus)
-                    self.sensor_node = SimulatedTorqueSensor(sensor_bus, drive_cfg, shared)
-                self.glove_sim = SimulatedGloveUnit(self.plant.grip, rig.glove.calibration).start()
-                port = self.glove_sim.port
+                self.physiology = self.simulated.physiology
+                port = self.simulated.glove.port
             if lab is not None:
                 self.physiology = lab.call("physiology")
             self.drive_config = drive_cfg
-            bus = open_bus(drive_cfg)
-            self._buses.append(bus)
-            self.drive = CiA402Drive(bus, drive_cfg)
+            self.drive = drive_kind(drive_cfg.kind).open(drive_cfg)
             try:
                 ser = serial.Serial(port, rig.glove.baudrate, timeout=0.05)
             except (serial.SerialException, OSError) as e:
@@ -167,7 +109,27 @@ class RigDevices:
             raise
 
     @property
-    def torque_sensor(self) -> DriveColumnTorque:
+    def plant(self):
+        """The simulated world behind a simulated rig's drive (None for a lab's devices)."""
+        return self.simulated.plant if self.simulated is not None else None
+
+    @property
+    def node(self):
+        """The simulated drive of a simulated rig (None for a lab's devices)."""
+        return self.simulated.drive if self.simulated is not None else None
+
+    @property
+    def glove_sim(self):
+        """The simulated glove unit of a simulated rig (None for a lab's devices)."""
+        return self.simulated.glove if self.simulated is not None else None
+
+    @property
+    def sensor_node(self):
+        """A simulated rig's own torque sensor node, if its kind has one (None otherwise)."""
+        return getattr(self.node, "sensor_node", None)
+
+    @property
+    def torque_sensor(self) -> ColumnTorque:
         return self.drive.torque_sensor
 
     def begin_trial(self, setup: TrialSetup) -> None:
@@ -188,7 +150,7 @@ class RigDevices:
     def zero_torque_sensor(self) -> None:
         """With the wheel released, average the column torque and take it as the offset."""
         self._release(True)
-        self.drive.torque_sensor.clear_recent()
+        self._driver_torque().clear_recent()
         try:
             period = 1.0 / self.rig.loop_rate_hz
             t0 = time.perf_counter()
@@ -203,30 +165,16 @@ class RigDevices:
                     pass
                 self.drive.set_torque(0.0)
                 self.drive.sync()
-            self.drive.torque_sensor.zero()
+            self._driver_torque().zero()
         finally:
             self._release(False)
 
     def health(self) -> str | None:
         """A reason to stop the trial now, or None."""
-        d, g = self.drive, self.glove
-        if d.heartbeat_lost:
-            return "drive lost: no heartbeat"
-        if not d.ok:
-            # The first active fault is the cause (an EMCY); later ones follow from it (the
-            # drive then leaves OPERATION ENABLED).
-            faults = d.active_faults
-            if not faults:
-                return "drive not ready"
-            # The others by kind and code, so that the reason names every fault there was (two
-            # can come together: a starved host's heartbeat gap with the drive's own EMCY).
-            others = [
-                f"{f.kind} 0x{f.code:04X}" if f.code is not None else f.kind for f in faults[1:]
-            ]
-            more = f" (and {len(others)} more: {', '.join(others)})" if others else ""
-            return f"drive fault: {faults[0]}{more}"
-        if self.hands_off:
-            return None
+        problem = self.drive.problem()
+        if problem is not None or self.hands_off:
+            return problem
+        g = self.glove
         if g.error is not None:
             return f"glove unit failed: {g.error}"
         age = g.age_s()
@@ -240,18 +188,24 @@ class RigDevices:
     def status(self) -> dict:
         d, g = getattr(self, "drive", None), getattr(self, "glove", None)
         st = g.stats().as_dict() if g is not None else {}
+        drive = (
+            d.status()
+            if d is not None
+            else {"drive_state": "none", "drive_ok": False, "drive_enabled": False, "faults": []}
+        )
         return {
-            "drive_state": getattr(d.state, "name", str(d.state)) if d else "none",
-            "drive_ok": bool(d and d.ok),
-            "drive_enabled": bool(d and d.enabled),
-            "heartbeat_age_s": d.heartbeat_age_s() if d else None,
-            "missed_tpdo": d.missed_tpdo if d else None,
-            "faults": [str(f) for f in d.faults] if d else [],
+            **drive,
             "glove_rate_hz": st.get("rate_hz"),
             "glove_crc_errors": st.get("crc_errors"),
             "glove_dropped_frames": st.get("dropped_frames"),
             "glove_age_s": g.age_s() if g else None,
         }
+
+    def _driver_torque(self) -> ColumnTorque:
+        try:
+            return self.drive.torque_sensor
+        except DriveError:  # the rig file gives none: hands-off trials only
+            return _NoDriverTorque(self)
 
     def device_loop(
         self, *, estop=None, realtime: bool = True, block_s: float = DEFAULT_BLOCK_S
@@ -262,7 +216,7 @@ class RigDevices:
         suspend the loop and leave the drive holding its last command)."""
         return DeviceLoop(
             self.drive,
-            self.drive.torque_sensor,
+            self._driver_torque(),
             self.glove,
             realtime=realtime,
             trial_hooks=[self.begin_trial],
@@ -277,13 +231,7 @@ class RigDevices:
     def close(self) -> None:
         drive = getattr(self, "drive", None)  # a failed __init__ may not have got so far
         closers: list[Callable[[], object]] = [drive.disable, drive.close] if drive else []
-        for device in (
-            getattr(self, "glove", None),
-            self.glove_sim,
-            self.node,
-            self.sensor_node,
-            self.lab,
-        ):
+        for device in (getattr(self, "glove", None), self.simulated, self.lab):
             if device is not None:
                 closers.append(device.close)
         for closer in closers:
@@ -291,12 +239,29 @@ class RigDevices:
                 closer()
             except Exception:
                 pass
-        for b in self._buses:
-            try:
-                b.shutdown()
-            except Exception:
-                pass
-        self._buses = []
+
+
+class _NoDriverTorque:
+    """A rig without a driver torque (``[drive.torque_sensor] source = "none"``): recorded as
+    NaN in a hands-off trial (a rig check needs none); any other trial is refused at its start
+    (``steerlab run`` refuses the session before that)."""
+
+    def __init__(self, devices: RigDevices) -> None:
+        self._devices = devices
+
+    def read(self) -> float:
+        if not self._devices.hands_off:
+            raise TrialFault(
+                'this rig gives no driver torque ([drive.torque_sensor] source = "none"): '
+                "only a hands-off trial (rig check) can run on it"
+            )
+        return math.nan
+
+    def zero(self) -> None:
+        pass
+
+    def clear_recent(self) -> None:
+        pass
 
 
 # -- the loop's own process ----------------------------------------------------------------------
@@ -341,9 +306,18 @@ class SampleRing:
         return {name: rows[:, c].copy() for c, name in enumerate(LOOP_CHANNELS)}
 
 
+def _terminated(signum, frame) -> None:
+    # SIGTERM (multiprocessing's terminate(), the engine's process ending): leave through the
+    # finalizers, which disable the drive, instead of dying where it stands.
+    raise SystemExit(128 + signum)
+
+
 def _worker(
     rig, subject_number: int, conn, out_end, estop, block_s: float, ring=None, lab=None
 ) -> None:
+    import signal
+
+    signal.signal(signal.SIGTERM, _terminated)
     out = Outbox(out_end)
     try:
         _serve(rig, subject_number, conn, out, estop, block_s, ring, lab)
@@ -446,7 +420,7 @@ def _inject(fault: str, devices: RigDevices, setup: TrialSetup) -> float:
     """Inject ``fault`` now, on the loop's thread, between two blocks; its time.monotonic()."""
     t = time.monotonic()
     if fault == "bus_off":
-        devices.drive._bus.shutdown()
+        devices.drive.drop_bus()
     elif fault == "hang":
         time.sleep(0.2)
     elif fault == "nan":
@@ -477,11 +451,19 @@ class ProcessLoop:
         self.lab = None
         rig: RigConfig | str | None = rig_path
         lab_control = None
+        #: The drive as the engine's process reaches it when the loop process dies (None: the
+        #: drive is in the loop's own process, a simulated rig's ``"in_loop"``).
+        self._guarded: RigConfig | None = None
+        #: What the guard did when the loop process died: {"t", "sent"} or {"t", "error"}.
+        self.guard_report: dict | None = None
+        self._closing = False
+        try:
+            loaded = load_rig(rig_path)
+        except Exception as e:  # the same message as from the loop process
+            raise RigError(f"the rig could not be brought up: {type(e).__name__}: {e}") from e
+        if not loaded.simulated:
+            self._guarded = loaded
         if simulated_devices == "process":
-            try:
-                loaded = load_rig(rig_path)
-            except Exception as e:  # the same message as from the loop process
-                raise RigError(f"the rig could not be brought up: {type(e).__name__}: {e}") from e
             if loaded.simulated:
                 from steerlab.hardware.can.config import UDP_LOOPBACK
                 from steerlab.hardware.sim.lab import LabProcess
@@ -498,6 +480,7 @@ class ProcessLoop:
                     simulation=None,
                 )
                 lab_control = (self.lab.control_address, self.lab.authkey)
+                self._guarded = rig
         try:
             self._start(rig, subject_number, start_timeout_s, block_s, lab_control)
         except BaseException:
@@ -558,6 +541,33 @@ class ProcessLoop:
         self.status = payload["status"]
         self.physiology = payload["physiology"]
         self.realtime = payload["realtime"]
+        guard_off = None
+        if self._guarded is not None:
+            guard_off = getattr(drive_kind(self._guarded.drive.kind), "emergency_off", None)
+        if guard_off is not None:
+            threading.Thread(
+                target=self._guard, args=(guard_off,), name="steerlab-drive-guard", daemon=True
+            ).start()
+
+    def _guard(self, emergency_off) -> None:
+        """The loop process died (killed, crashed): from this process, turn the drive off.
+
+        For a drive whose own guard against a silent host is unknown (its kind has an
+        ``emergency_off``), the host assumes there is none: the loop's torque command would
+        stay on the wheel. A CiA 402 drive watches the host's heartbeat itself."""
+        from multiprocessing.connection import wait
+
+        wait([self._proc.sentinel])
+        if self._closing and self._proc.exitcode == 0:
+            return  # closed as asked: it disabled the drive itself
+        # Killed or crashed (a negative exit code is a signal: close()'s own terminate or kill
+        # of a loop process that would not end is one): its finalizers did not run.
+        assert self._guarded is not None  # only started with a guarded drive
+        try:
+            emergency_off(self._guarded.drive)
+            self.guard_report = {"t": time.monotonic(), "sent": True}
+        except Exception as e:  # nothing more this process can do; say so in the report
+            self.guard_report = {"t": time.monotonic(), "error": f"{type(e).__name__}: {e}"}
 
     def emergency_stop(self) -> None:
         self._estop.set()
@@ -689,6 +699,7 @@ class ProcessLoop:
                     sent_pause = True
 
     def close(self) -> None:
+        self._closing = True
         try:
             with self._lock:
                 self._conn.send(("close",))

@@ -190,6 +190,10 @@ class DeviceLoop:
         blk = max(1, int(round(self.block_s * fs)))
         tp_all = setup.perturbation_nm
         k_sw, b_sw = setup.wheel_k, setup.wheel_b
+        # A drive that renders the spring and damper in its own fields (free of the host's
+        # latency and jitter) is sent the command less what it adds itself: the safety layer
+        # still limits, slews and records the whole torque on the wheel, as for any drive.
+        renders_wheel = bool(getattr(self.drive, "renders_wheel", False))
         limits = self.safety.kernel_vector(fs)
         # A driving trial: the vehicle's aligning torque joins the perturbation in the command.
         vehicle = None
@@ -219,6 +223,9 @@ class DeviceLoop:
                 gc.disable()
             if self.pre_trial is not None:
                 self.pre_trial()
+            if renders_wheel:
+                # After the zeroing, which measures the sensor on a wheel left to itself.
+                self.drive.set_wheel(k_sw, b_sw)
             self._last_cycle = self.clock()
             if self.realtime:
                 watchdog = threading.Thread(
@@ -299,7 +306,10 @@ class DeviceLoop:
                                 raise TrialFault(f"non-finite motor command input: {bad}")
                         if trace is not None:
                             trace[k + j, 2] = self.clock() - due if self.realtime else 0.0
-                        self.drive.set_torque(cmd)
+                        if renders_wheel:
+                            self.drive.set_torque(cmd + k_sw * ang + b_sw * vel)
+                        else:
+                            self.drive.set_torque(cmd)
                         self.drive.sync()
                         if trace is not None:
                             trace[k + j, 3] = self.clock() - due if self.realtime else 0.0

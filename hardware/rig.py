@@ -14,7 +14,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from steerlab.hardware.can.config import ConfigError, DriveConfig, drive_config_from_dict
+from steerlab.hardware.can.config import ConfigError
+from steerlab.hardware.drives import DriveSettings, drive_config
 from steerlab.hardware.glove.calibration import CalibrationError, GloveCalibration
 from steerlab.hardware.safety import SafetyLimits
 
@@ -29,6 +30,7 @@ SIMULATION_FIELDS = (
     "coulomb_nm",
     "gravity_nm",
     "actuator_lag_s",
+    "drive_watchdog_ms",
 )
 #: [rig_check] fields (steerlab rig-check's verdict) and their defaults.
 RIG_CHECK_DEFAULTS = {
@@ -62,6 +64,9 @@ class SimulationConfig:
     coulomb_nm: float = 0.0
     gravity_nm: float = 0.0
     actuator_lag_s: float = 0.0
+    # A simulated SensoDrive's own guard against a silent host, ms; 0: none. The real drive's
+    # is unknown, so none is the default: the host must not count on one.
+    drive_watchdog_ms: float = 0.0
 
     def world_config(self, fs_hz: float):
         """The simulated world's configuration for this rig."""
@@ -84,7 +89,7 @@ class SimulationConfig:
 @dataclass(frozen=True)
 class RigConfig:
     source: str
-    drive: DriveConfig
+    drive: DriveSettings  # of the kind [drive] kind names (hardware.drives)
     glove: GloveConfig
     safety: SafetyLimits
     simulation: SimulationConfig | None
@@ -101,9 +106,7 @@ class RigConfig:
     def describe(self) -> dict:
         return {
             "source": self.source,
-            "drive_interface": self.drive.interface,
-            "drive_channel": str(self.drive.channel),
-            "drive_node_id": self.drive.node_id,
+            **self.drive.describe(),
             "glove_port": self.glove.port,
             "loop_rate_hz": self.loop_rate_hz,
             "safety": asdict(self.safety),
@@ -139,7 +142,7 @@ def load_rig(path: str | Path | None = None) -> RigConfig:
             sorted(unknown)[0],
             f"unknown table (known: {', '.join(sorted(KNOWN_TABLES))})",
         )
-    drive = drive_config_from_dict(data, source=src)
+    drive = drive_config(data, src)
     safety = SafetyLimits(**asdict(drive.safety))
     for field, problem in safety.problems():
         raise ConfigError(src, "safety", field, problem)
@@ -188,7 +191,7 @@ def load_rig(path: str | Path | None = None) -> RigConfig:
                 )
         if not t.get("wheel_inertia_kgm2", 0.3) > 0:
             raise ConfigError(src, "simulation", "wheel_inertia_kgm2", "must be > 0")
-        for key in ("coulomb_nm", "actuator_lag_s"):
+        for key in ("coulomb_nm", "actuator_lag_s", "drive_watchdog_ms"):
             if t.get(key, 0.0) < 0:
                 raise ConfigError(src, "simulation", key, "must be ≥ 0")
         sim = SimulationConfig(

@@ -4,11 +4,10 @@
 the GUI polls, and what the dashboard shows.
 
 - ``rig_path=None``: the simulated rig, a simulated subject on the simulated world behind the
-  device interfaces, run by :class:`hardware.loop.DeviceLoop` at wall-clock pace in this process
-  (on the engine's worker thread).
-- a rig file: handed to ``hardware.live.ProcessLoop(rig_path, subject_number)``, the lab's
-  loop in a process of its own (CAN drive, glove unit; or their simulations for a simulated rig
-  file). Until that module can be imported the GUI says so and stops.
+  device interfaces, at wall-clock pace in this process (on the engine's worker thread):
+  :func:`hardware.trial_loops.simulated_loop`.
+- a rig file: :func:`hardware.trial_loops.rig_loop`, the lab's loop in a process of its own
+  (the drive of the rig's kind, the glove unit; or their simulations for a simulated rig file).
 
 Status interface (:class:`RigStatus`): a plain dict the GUI thread reads about twice a second.
 ``status()`` must be cheap, must not block, and must be safe to call from a thread other than
@@ -17,7 +16,6 @@ the loop's (read attributes only; never talk to the bus from it). A rig fills wh
 
 from __future__ import annotations
 
-import importlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,14 +23,10 @@ from pathlib import Path
 from typing import Any, TypedDict
 
 from steerlab.hardware.sim.physiology import SubjectPhysiology, make_population
-from steerlab.hardware.sim.rig import simulated_rig
 from steerlab.hardware.sim.world import WorldConfig
+from steerlab.hardware.trial_loops import rig_loop, simulated_loop
 from steerlab.protocols.engine import TrialLoop
 from steerlab.protocols.protocol import Protocol
-
-#: The module and class that run a lab rig's loop (in its own process).
-RIG_LOOP_MODULE = "steerlab.hardware.live"
-RIG_LOOP_CLASS = "ProcessLoop"
 
 #: Samples per block the loop hands to the engine. Smaller than the headless default (50 ms)
 #: because the dashboard's indicator lags by up to one block (ours: 20 ms).
@@ -102,21 +96,6 @@ def check_rig_path(rig_path: str | None) -> None:
     p = Path(rig_path)
     if not p.is_file():
         raise RigError(f"{rig_path}: no such rig file (omit --rig to use the simulated rig)")
-    _rig_loop_class(p)
-
-
-def _rig_loop_class(p: Path) -> Callable[..., Any]:
-    try:
-        mod = importlib.import_module(RIG_LOOP_MODULE)
-    except ImportError as e:
-        raise RigError(
-            f"{p}: lab rigs are not available in this installation ({RIG_LOOP_MODULE} cannot be "
-            f"imported: {e}); omit --rig to use the simulated rig"
-        ) from None
-    cls = getattr(mod, RIG_LOOP_CLASS, None)
-    if cls is None:
-        raise RigError(f"{RIG_LOOP_MODULE} has no {RIG_LOOP_CLASS}; cannot open {p}")
-    return cls
 
 
 def _lab_status(loop: Any, name: str) -> Callable[[], RigStatus]:
@@ -164,7 +143,7 @@ def make_rig_loop(
         check_rig_path(rig_path)
         number = subject if isinstance(subject, int) else 1
         try:
-            loop = _rig_loop_class(Path(rig_path))(rig_path, number, block_s=block_s)
+            loop = rig_loop(rig_path, number, block_s=block_s)
         except Exception as e:  # the rig did not come up: one message for the experimenter
             raise RigError(f"{rig_path}: {e}") from e
         name = Path(rig_path).name
@@ -187,9 +166,14 @@ def make_rig_loop(
             raise RigError(f"subject number must be ≥ 1, got {subject}")
         phys = make_population(int(subject), seed=seed)[int(subject) - 1]
     world = WorldConfig(fs_hz=protocol.loop_rate_hz)
-    rig = simulated_rig(phys, world, protocol.wheel)
-    rig.display = display  # the dashboard reads what the loop shows
-    loop = rig.device_loop(realtime=realtime, block_s=block_s)
+    loop, rig = simulated_loop(
+        phys,
+        world,
+        protocol.wheel,
+        pace="paced" if realtime else "stepped",
+        block_s=block_s,
+        display=display,  # the dashboard reads what the loop shows
+    )
 
     def status() -> RigStatus:
         enabled = bool(rig.drive.enabled)
@@ -210,7 +194,7 @@ def make_rig_loop(
         display=display,
         simulated=True,
         drive=rig.drive,
-        steps_by_sample=True,  # SimulatedDrive.sync() steps the world; reads never advance it
+        steps_by_sample=True,  # WorldDrive.sync() steps the world; reads never advance it
         extra_attributes={
             "simulated": True,
             "simulation_seed": seed,

@@ -61,6 +61,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from steerlab.hardware.interfaces import DriveReading
 
 from .config import ABORT_CONNECTION_OPTIONS, DriveConfig
+from .errors import DriveEnableError, DriveError
 from .frames import (
     ABORT_CONNECTION_OPTION,
     COMM_CYCLE_PERIOD,
@@ -101,6 +102,7 @@ from .frames import (
 )
 from .scaling import DriveScaling
 from .transport import BusReader
+from .zeroed_torque import ZeroedTorque
 
 log = logging.getLogger(__name__)
 
@@ -112,14 +114,6 @@ _RX_TPDO1 = 0b001
 _RX_TPDO2 = 0b010
 _RX_SENSOR = 0b100
 _RX_DRIVE = _RX_TPDO1 | _RX_TPDO2
-
-
-class DriveError(RuntimeError):
-    """The drive could not do what was asked."""
-
-
-class DriveEnableError(DriveError):
-    """enable() failed; the message says at which step and what the drive answered."""
 
 
 class DriveFaultError(DriveError):
@@ -746,7 +740,7 @@ class CiA402Drive:
         if not self._has_sensor:
             raise DriveError("no column torque sensor configured ([drive.torque_sensor])")
         if self._sensor is None:
-            self._sensor = DriveColumnTorque(self)
+            self._sensor = ZeroedTorque(self.column_torque_nm, self._column_recent, "column torque")
         return self._sensor
 
     def close(self) -> None:
@@ -1144,32 +1138,10 @@ class CiA402Drive:
             self._record(what, f"controlword 0x{cw:04X} by SDO failed: {_describe(exc)}", key=None)
 
 
-class DriveColumnTorque:
-    """The drive's column torque channel as a :class:`hardware.interfaces.TorqueSensor`,
-    whether the value comes in the drive's TPDO2 or from a separate sensor node.
-
-    Values come with each sync(); :meth:`zero` averages the ones received in the last
-    ``_COLUMN_SAMPLES`` cycles (cycles where the value did not arrive are not counted), so the
-    control loop must have been running (wheel released).
-    """
-
-    def __init__(self, drive: CiA402Drive):
-        self._drive = drive
-        self.offset_nm = 0.0
-
-    def read(self) -> float:
-        return self._drive.column_torque_nm() - self.offset_nm
-
-    def clear_recent(self) -> None:
-        """Forget earlier column torque values: the next zero() sees only what follows."""
-        self._drive._column_recent.clear()
-
-    def zero(self) -> None:
-        """:raises DriveError: no column torque has been received yet."""
-        samples = list(self._drive._column_recent)
-        if not samples:
-            raise DriveError("no column torque received yet; zero() needs sync() running")
-        self.offset_nm = sum(samples) / len(samples)
+#: The drive's column torque channel (TPDO2 or a sensor node's frame, latched by each sync()):
+#: :meth:`~ZeroedTorque.zero` averages the values of the last ``_COLUMN_SAMPLES`` cycles that
+#: had one, so the control loop must have been running (wheel released).
+DriveColumnTorque = ZeroedTorque
 
 
 def _describe(exc: BaseException) -> str:

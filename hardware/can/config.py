@@ -11,7 +11,7 @@ import math
 import tomllib
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import can
 
@@ -164,9 +164,27 @@ class DriveConfig:
     velocity_unit: VelocityUnit = "counts_per_s"
     torque_sensor: TorqueSensorConfig = field(default_factory=TorqueSensorConfig)
     source: str = field(default=_PYTHON, compare=False)
+    #: the rig file's ``[drive] kind`` (:mod:`hardware.drives`)
+    kind: ClassVar[str] = "cia402"
 
     def __post_init__(self) -> None:
         _validate(self)
+
+    @property
+    def angle_quantum_rad(self) -> float:
+        """The smallest angle step the drive reports: one encoder count on the wheel."""
+        from .scaling import DriveScaling
+
+        return abs(DriveScaling(self).counts_to_angle(1))
+
+    def describe(self) -> dict[str, Any]:
+        """The fields that identify this drive, for a session file's rig record."""
+        return {
+            "drive_kind": self.kind,
+            "drive_interface": self.interface,
+            "drive_channel": str(self.channel),
+            "drive_node_id": self.node_id,
+        }
 
     @property
     def sync_period_s(self) -> float:
@@ -219,7 +237,8 @@ def drive_config_from_dict(data: dict[str, Any], *, source: str = "<dict>") -> D
     safety_table = _table(data, "safety", source, required=True)
     assert drive is not None and safety_table is not None  # required: _table raised otherwise
     sensor_table = _table(drive, "torque_sensor", source, required=False, section="drive")
-    drive = {k: v for k, v in drive.items() if k != "torque_sensor"}
+    # ``kind`` chose this module (hardware.drives); it is not a CiA 402 setting.
+    drive = {k: v for k, v in drive.items() if k not in ("torque_sensor", "kind")}
 
     sensor = TorqueSensorConfig(
         **_known(sensor_table or {}, TorqueSensorConfig, source, "drive.torque_sensor")

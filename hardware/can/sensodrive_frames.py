@@ -3,7 +3,7 @@
 Pure functions and constants for a SensoDrive driver and a simulated SensoDrive to share, so
 both read the same bytes the same way. The facts are those of the two public clients
 (tud-hri/joan, lflipse/gt-state-feedback-observer) as gathered in the team's
-``sensodrive-protocol.md``; the vendor's manual is not public. Parsers raise only
+``docs/sensodrive-protocol.md``; the vendor's manual is not public. Parsers raise only
 :class:`~hardware.can.frames.FrameError`; encoders raise it for a value the field cannot hold
 (never wrap or clip silently: a wrapped torque is a torque of the other sign).
 

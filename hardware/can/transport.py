@@ -46,8 +46,9 @@ def driver_filters(config: DriveConfig) -> list[can.typechecking.CanFilter]:
     return [{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in ids]
 
 
-def open_bus(config: DriveConfig, *, filtered: bool = True, **kwargs: object) -> can.BusABC:
-    """Open the bus named by the rig file's ``interface``, ``channel`` and ``bitrate``.
+def open_bus(config: Any, *, filtered: bool = True, **kwargs: object) -> can.BusABC:
+    """Open the bus named by the rig file's ``interface``, ``channel`` and ``bitrate`` (a drive
+    config of any kind; ``filtered`` is the CiA 402 driver's filters, a :class:`DriveConfig`'s).
 
     ``filtered=True`` installs :func:`driver_filters`; pass ``False`` for a bus that must see
     everything (a simulated drive node, a bus monitor). Extra keyword arguments go to

@@ -40,50 +40,18 @@ import uuid
 from dataclasses import replace
 from multiprocessing.connection import Client, Listener
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from steerlab.hardware.can.config import UDP_LOOPBACK
-from steerlab.hardware.can.sim_node import SimulatedDrive
 from steerlab.hardware.can.transport import open_bus
+from steerlab.hardware.sim.devices import simulated_devices
 from steerlab.protocols.session import TrialSetup
 
-if TYPE_CHECKING:
-    from steerlab.hardware.live import WorldPlant
-
-FAULTS = (
-    "stop_heartbeat",  # the drive's own heartbeat stops (it still drives)
-    "go_silent",  # the link is cut: the drive hears and says nothing
-    "emcy",  # the drive faults: EMCY 0x2310, power stage off
-    "mute_pdo",  # SYNCs go unanswered
+#: Faults of the glove unit; the drive's own come from its kind (``SimulatedDriveNode.faults``).
+GLOVE_FAULTS = (
     "glove_hang_up",  # the glove's serial port closes
     "glove_stop",  # the glove stream stops
     "crc_storm",  # 200 glove frames with a bad CRC
 )
-
-
-class HeldWheel:
-    """Wheel inertia with a relaxed hand on it (hardware.can.Plant), stepped once per SYNC."""
-
-    def __init__(self, fs_hz: float, inertia=0.3, k_hand=5.0, b_hand=1.0, offset_nm=0.05):
-        self.dt = 1.0 / fs_hz
-        self.j, self.k, self.b, self.offset = inertia, k_hand, b_hand, offset_nm
-        self.angle = self.velocity = self.motor = 0.0
-
-    def hand_torque(self) -> float:
-        return -(self.k * self.angle + self.b * self.velocity)
-
-    def step(self, motor_torque_nm: float) -> None:
-        self.motor = motor_torque_nm
-        acc = (motor_torque_nm + self.hand_torque()) / self.j
-        self.velocity += acc * self.dt  # semi-implicit Euler
-        self.angle += self.velocity * self.dt
-
-    def read(self) -> tuple[float, float, float, float]:
-        # driver torque: the torque the wheel exerts on the hand (minus the hand's on the wheel)
-        return self.angle, self.velocity, self.motor, -self.hand_torque() + self.offset
-
-    def grip(self, _t: float) -> tuple[float, float]:
-        return 20.0, 20.0
 
 
 #: Environment variable that carries the control socket's key from parent to lab process.
@@ -91,48 +59,33 @@ AUTHKEY_ENV = "STEERLAB_LAB_AUTHKEY"
 
 
 class SimulatedLab:
-    """The drive node and glove unit of a simulated rig file, on ``channel`` (udp_loopback);
-    with ``subject``, the rig's full simulated world with that subject of its population."""
+    """The simulated drive (of the rig's kind) and glove unit of a simulated rig file, on
+    ``channel`` (udp_loopback); with ``subject``, the rig's full simulated world with that
+    subject of its population (:func:`hardware.sim.devices.simulated_devices`)."""
 
     def __init__(self, rig_path: str | None, channel: str, subject: int | None = None) -> None:
-        from steerlab.hardware.can import SharedPlant, SimulatedTorqueSensor
-        from steerlab.hardware.glove.simulated import SimulatedGloveUnit
         from steerlab.hardware.rig import load_rig
 
         rig = load_rig(rig_path)
+        if subject is not None and rig.simulation is None:
+            raise ValueError(f"{rig.source}: --subject needs a simulated rig ([simulation])")
         self.config = replace(rig.drive, interface=UDP_LOOPBACK, channel=channel)
-        self.physiology: dict | None = None
-        self.world = None  # the subject's world (hardware.live.WorldPlant), or None
-        self.sensor_node = None
-        self._buses = []
-        self.plant: HeldWheel | WorldPlant
-        if subject is None:
-            self.plant = HeldWheel(rig.loop_rate_hz)
-        else:
-            from steerlab.hardware.live import WorldPlant
-            from steerlab.hardware.sim.physiology import make_population
-            from steerlab.hardware.sim.rig import simulated_rig
-
-            sim = rig.simulation
-            if sim is None:
-                raise ValueError(f"{rig.source}: --subject needs a simulated rig ([simulation])")
-            phys = make_population(subject, seed=sim.seed)[subject - 1]
-            self.physiology = phys.to_dict()
-            sim_rig = simulated_rig(phys, sim.world_config(rig.loop_rate_hz))
-            self.world = self.plant = WorldPlant(
-                sim_rig, sim.column_torque_offset_nm, seed=phys.seed
-            )
-        with_sensor = subject is not None and self.config.torque_sensor.source == "node"
-        # A sensor node reads the world on its own thread; the drive node alone steps it.
-        shared = SharedPlant(self.plant) if with_sensor else None
-        self.bus = open_bus(self.config, filtered=False)
-        self.node = SimulatedDrive(self.bus, self.config, shared or self.plant)
-        if shared is not None:
-            sensor_bus = open_bus(self.config, filtered=False)
-            self._buses.append(sensor_bus)
-            self.sensor_node = SimulatedTorqueSensor(sensor_bus, self.config, shared)
-        self.glove = SimulatedGloveUnit(self.plant.grip, rig.glove.calibration).start()
+        self.devices = simulated_devices(
+            rig,
+            lambda: open_bus(self.config, filtered=False),
+            subject=subject,
+            drive_config=self.config,
+        )
+        self.physiology = self.devices.physiology
+        self.world = self.devices.world  # the subject's world, or None
+        self.plant = self.devices.plant
+        self.node = self.devices.drive
+        self.glove = self.devices.glove
         self._listener: Listener | None = None
+
+    @property
+    def faults(self) -> tuple[str, ...]:
+        return (*self.node.faults, *GLOVE_FAULTS)
 
     # -- the host's loop tells the simulated subject about the trial (control socket) --------
     def serve(self, authkey: bytes) -> str:
@@ -187,53 +140,30 @@ class SimulatedLab:
         return None
 
     def status(self) -> dict:
-        n = self.node
-        return {
-            "t": time.monotonic(),
-            "applied_torque_nm": n.applied_torque_nm,
-            "zero_torque_since": n.zero_torque_since,
-            "state": n.state.value,
-            "watching_host": n.watching_host,
-            "host_heartbeats_lost": n.host_heartbeats_lost,
-            "connection_lost_at": n.connection_lost_at,
-            "sync_count": n.sync_count,
-            "enabled_syncs": n.enabled_syncs,
-            "errors": [repr(e) for e in n.errors],
-            "cpu_s": sum(os.times()[:2]),  # this process's, user + system
-        }
+        # this process's CPU, user + system
+        return {"t": time.monotonic(), **self.node.status(), "cpu_s": sum(os.times()[:2])}
 
     def inject(self, fault: str) -> None:
-        n, g = self.node, self.glove
-        if fault == "stop_heartbeat":
-            n.stop_heartbeat()
-        elif fault == "go_silent":
-            n.go_silent()
-        elif fault == "emcy":
-            n.inject_fault(0x2310)
-        elif fault == "mute_pdo":
-            n.mute_pdo = True
-        elif fault == "glove_hang_up":
+        g = self.glove
+        if fault == "glove_hang_up":
             g.hang_up()
         elif fault == "glove_stop":
             g.stop_streaming()
         elif fault == "crc_storm":
             g.crc_error_next(200)
+        elif fault in self.node.faults:
+            self.node.inject(fault)
         else:
-            raise ValueError(f"unknown fault {fault!r} (known: {', '.join(FAULTS)})")
+            raise ValueError(f"unknown fault {fault!r} (known: {', '.join(self.faults)})")
 
     def close(self) -> None:
         listener, self._listener = self._listener, None
         # Read before the close: a closed Listener has no address (AttributeError).
         address = listener.address if listener is not None else None
-        closers = [self.glove.close, self.node.close, self.bus.shutdown]
-        if self.sensor_node is not None:
-            closers.append(self.sensor_node.close)
-        closers += [b.shutdown for b in self._buses]
+        self.devices.close()
         if listener is not None:
-            closers.append(listener.close)
-        for closer in closers:
             try:
-                closer()
+                listener.close()
             except Exception:
                 pass
         _remove_control_folder(address)

@@ -99,8 +99,8 @@ class SimulatedRig:
         self.cfg = cfg or WorldConfig()
         self.subject = subject
         self.world = DrivingWorld(self.cfg, wheel)  # the plain World outside driving trials
-        self.drive = SimulatedDrive(self.world)
-        self.torque_sensor = SimulatedTorqueSensor(self.world)
+        self.drive = WorldDrive(self.world)
+        self.torque_sensor = WorldTorqueSensor(self.world)
         self.glove = SimulatedGlove(self.world)
         # The GUI puts its own in (app.gui.rig.DisplayState): any Display will do.
         self.display: Display = SimulatedDisplay()
@@ -146,7 +146,10 @@ class SimulatedRig:
         return BatchLoop(self, block_s)
 
 
-class SimulatedDrive:
+class WorldDrive:
+    """The in-process simulated rig's drive: a command straight into the world, no protocol
+    (the simulated drives that speak a real drive's protocol are in :mod:`hardware.can`)."""
+
     def __init__(self, world: World) -> None:
         self.world = world
         self.enabled = False
@@ -173,7 +176,7 @@ class SimulatedDrive:
         return DriveReading(r["wheel_angle_rad"], r["wheel_velocity_rad_s"], r["motor_torque_Nm"])
 
 
-class SimulatedTorqueSensor:
+class WorldTorqueSensor:
     def __init__(self, world: World) -> None:
         self.world = world
 

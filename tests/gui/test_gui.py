@@ -536,11 +536,13 @@ def test_live_admittance_panel(qtbot, tmp_path):
     assert p.k_i == pytest.approx(ref.parameters(210.0)["k_i"])
 
 
-def test_rig_file_runs_its_loop_in_a_process_and_the_stop_reaches_it(qtbot, tmp_path):
-    # The simulated rig file: CAN drive node and glove unit simulated, the loop in its own
-    # process (hardware.live). Lenient stall limit: behaviour, not timing, on a shared machine.
+@pytest.mark.parametrize("rig_file", ["simulated.toml", "sensodrive-sim.toml"])
+def test_rig_file_runs_its_loop_in_a_process_and_the_stop_reaches_it(qtbot, tmp_path, rig_file):
+    # A simulated rig file (a CiA 402 drive, a SENSO-Wheel): the drive and glove unit
+    # simulated, the loop in its own process (hardware.live). Lenient stall limit: behaviour,
+    # not timing, on a shared machine.
     rig = tmp_path / "rig.toml"
-    text = (ROOT / "hardware" / "rigs" / "simulated.toml").read_text()
+    text = (ROOT / "hardware" / "rigs" / rig_file).read_text()
     rig.write_text(re.sub(r"(?m)^loop_stall_s = \S+", "loop_stall_s = 0.5", text))
     proto = parse_protocol(short_protocol_text(loop_rate_hz=1000.0), "short1k.toml")
     w = ExperimenterWindow(proto, tmp_path / "data", rig_path=str(rig))

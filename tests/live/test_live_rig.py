@@ -80,7 +80,7 @@ FAULTS = {
     # 0x2310 first, or after a heartbeat error of a host starved by the load (the reason names
     # every active fault).
     "drive EMCY fault": (lambda d, loop: d.node.inject_fault(0x2310), r"drive fault: .*0x2310"),
-    "CAN send failure": (lambda d, loop: d._buses[-1].shutdown(), r"drive fault: .*(not sent|bus)"),
+    "CAN send failure": (lambda d, loop: d.drive.drop_bus(), r"drive fault: .*(not sent|bus)"),
     "drive link silent": (lambda d, loop: d.node.go_silent(), r"drive (lost|fault)"),
     "glove pty closed": (
         lambda d, loop: d.glove_sim.hang_up(),

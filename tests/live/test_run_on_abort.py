@@ -97,7 +97,7 @@ def _session(monkeypatch, tmp_path, protocol_file, lenient_rig, faulty: set[int]
     run again in a fresh folder."""
     for attempt in range(3):
         started: list[str] = []
-        monkeypatch.setattr(run_module, "ProcessLoop", _faulty_loop(started, faulty))
+        monkeypatch.setattr(run_module, "rig_loop", _faulty_loop(started, faulty))
         said: list[str] = []
         say = kw.pop("say", None)
         out = tmp_path / f"try{attempt}"
