@@ -311,6 +311,7 @@ def run_fault(
             if loop.guard_report and t_inject is not None and "t" in loop.guard_report
             else None
         ),
+        "guard": loop.guard_report,
         "assumes": (
             f"the drive's own watchdog ({WATCHDOG_MS:g} ms, simulated; the real SENSO-Wheel's "
             "is unknown)"

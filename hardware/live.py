@@ -558,16 +558,22 @@ class ProcessLoop:
         from multiprocessing.connection import wait
 
         wait([self._proc.sentinel])
+        # The sentinel is ready as the process closes its files, a moment before its exit
+        # status can be read (and close() may be reaping it on another thread meanwhile).
+        deadline = time.monotonic() + 1.0
+        while self._proc.exitcode is None and time.monotonic() < deadline:
+            time.sleep(0.002)
         if self._closing and self._proc.exitcode == 0:
             return  # closed as asked: it disabled the drive itself
         # Killed or crashed (a negative exit code is a signal: close()'s own terminate or kill
         # of a loop process that would not end is one): its finalizers did not run.
         assert self._guarded is not None  # only started with a guarded drive
+        why = {"exitcode": self._proc.exitcode, "closing": self._closing}
         try:
             emergency_off(self._guarded.drive)
-            self.guard_report = {"t": time.monotonic(), "sent": True}
+            self.guard_report = {"t": time.monotonic(), "sent": True, **why}
         except Exception as e:  # nothing more this process can do; say so in the report
-            self.guard_report = {"t": time.monotonic(), "error": f"{type(e).__name__}: {e}"}
+            self.guard_report = {"t": time.monotonic(), "error": f"{type(e).__name__}: {e}", **why}
 
     def emergency_stop(self) -> None:
         self._estop.set()
