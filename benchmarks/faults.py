@@ -79,7 +79,14 @@ INJECT_AT = 2000  # samples: after the fade-in, with torque on the wheel
 
 # name, where it is injected, what, reason pattern, detection timeout (from the rig) or None
 _COMMON = [
-    ("CAN bus-off", "loop", "bus_off", r"drive fault: .*(not sent|bus)|CAN frame not sent", "bus"),
+    (
+        "CAN bus-off",
+        "loop",
+        "bus_off",
+        # whichever the driver noticed first: a frame it could not send, or its reader's end
+        r"drive fault: .*(not sent|bus)|CAN frame not sent|SensoDrive: receive thread",
+        "bus",
+    ),
     ("host process killed", "kill", None, r"live loop process died", "host"),
     ("glove port closed", "lab", "glove_hang_up", r"glove (unit failed|stream stopped)", "glove"),
     ("glove stream stopped", "lab", "glove_stop", r"glove stream stopped", "glove"),

@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
-from typing import Any, Protocol, runtime_checkable
+from dataclasses import replace
+from typing import Any, Protocol, cast, runtime_checkable
 
 import can
 
@@ -55,6 +56,8 @@ class DriveSettings(Protocol):
     sign: int
     safety: SafetyConfig
     source: str
+    #: where the driver torque comes from: its ``source`` ("none": the rig gives none)
+    torque_sensor: Any
 
     @property
     def angle_quantum_rad(self) -> float:
@@ -101,6 +104,12 @@ class DriveKind(Protocol):
         open_bus: Callable[[], can.BusABC],
         simulation: Any = None,
     ) -> SimulatedDriveNode: ...
+
+
+def on_bus(config: DriveSettings, interface: str, channel: str | int) -> DriveSettings:
+    """``config`` on another bus (every kind's config is a frozen dataclass): a simulated lab's
+    channel, a channel of its own for one simulated rig among several in a process."""
+    return replace(cast(Any, config), interface=interface, channel=channel)
 
 
 def kind_name(document: dict[str, Any], source: str) -> str:

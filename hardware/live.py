@@ -34,7 +34,7 @@ import numpy as np
 import serial
 
 from steerlab.hardware.can.errors import DriveError
-from steerlab.hardware.drives import drive_kind
+from steerlab.hardware.drives import drive_kind, on_bus
 from steerlab.hardware.glove.unit import SerialGloveUnit
 from steerlab.hardware.interfaces import ColumnTorque, RigDrive
 from steerlab.hardware.loop import DEFAULT_BLOCK_S, LOOP_CHANNELS, SPIN_S, DeviceLoop
@@ -81,8 +81,8 @@ class RigDevices:
                 from steerlab.hardware.sim.devices import simulated_devices
 
                 # A channel of its own: two simulated rigs in one process must not cross-talk.
-                drive_cfg = replace(
-                    drive_cfg, channel=f"{drive_cfg.channel}-{uuid.uuid4().hex[:8]}"
+                drive_cfg = on_bus(
+                    drive_cfg, "virtual", f"{drive_cfg.channel}-{uuid.uuid4().hex[:8]}"
                 )
                 channel = drive_cfg.channel
                 self.simulated = simulated_devices(
@@ -475,7 +475,7 @@ class ProcessLoop:
                 # The host sees a lab: the drive on the lab's bus, the glove on its pty.
                 rig = replace(
                     loaded,
-                    drive=replace(loaded.drive, interface=UDP_LOOPBACK, channel=self.lab.channel),
+                    drive=on_bus(loaded.drive, UDP_LOOPBACK, self.lab.channel),
                     glove=replace(loaded.glove, port=self.lab.pty),
                     simulation=None,
                 )

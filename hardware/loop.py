@@ -194,6 +194,7 @@ class DeviceLoop:
         # latency and jitter) is sent the command less what it adds itself: the safety layer
         # still limits, slews and records the whole torque on the wheel, as for any drive.
         renders_wheel = bool(getattr(self.drive, "renders_wheel", False))
+        set_wheel = getattr(self.drive, "set_wheel", None) if renders_wheel else None
         limits = self.safety.kernel_vector(fs)
         # A driving trial: the vehicle's aligning torque joins the perturbation in the command.
         vehicle = None
@@ -223,9 +224,9 @@ class DeviceLoop:
                 gc.disable()
             if self.pre_trial is not None:
                 self.pre_trial()
-            if renders_wheel:
+            if set_wheel is not None:
                 # After the zeroing, which measures the sensor on a wheel left to itself.
-                self.drive.set_wheel(k_sw, b_sw)
+                set_wheel(k_sw, b_sw)
             self._last_cycle = self.clock()
             if self.realtime:
                 watchdog = threading.Thread(

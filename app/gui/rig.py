@@ -166,7 +166,7 @@ def make_rig_loop(
             raise RigError(f"subject number must be ≥ 1, got {subject}")
         phys = make_population(int(subject), seed=seed)[int(subject) - 1]
     world = WorldConfig(fs_hz=protocol.loop_rate_hz)
-    loop, rig = simulated_loop(
+    sim_loop, rig = simulated_loop(
         phys,
         world,
         protocol.wheel,
@@ -189,7 +189,7 @@ def make_rig_loop(
 
     return RigHandle(
         name="simulated",
-        loop=loop,
+        loop=sim_loop,
         status=status,
         display=display,
         simulated=True,

@@ -731,9 +731,12 @@ class SensoDrive:
                 seen = self._state_count
             self._send(msg)
             with self._state_cond:
+
+                def answered(seen: int = seen) -> bool:
+                    return self._state_count > seen or self._cancel.is_set()
+
                 self._state_cond.wait_for(
-                    lambda seen=seen: self._state_count > seen or self._cancel.is_set(),
-                    min(_STATE_POLL_S, max(0.0, deadline - time.monotonic())),
+                    answered, min(_STATE_POLL_S, max(0.0, deadline - time.monotonic()))
                 )
                 if self._state_count > seen:
                     state = self._state

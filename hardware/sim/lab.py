@@ -37,12 +37,12 @@ import tempfile
 import threading
 import time
 import uuid
-from dataclasses import replace
 from multiprocessing.connection import Client, Listener
 from pathlib import Path
 
 from steerlab.hardware.can.config import UDP_LOOPBACK
 from steerlab.hardware.can.transport import open_bus
+from steerlab.hardware.drives import on_bus
 from steerlab.hardware.sim.devices import simulated_devices
 from steerlab.protocols.session import TrialSetup
 
@@ -69,7 +69,7 @@ class SimulatedLab:
         rig = load_rig(rig_path)
         if subject is not None and rig.simulation is None:
             raise ValueError(f"{rig.source}: --subject needs a simulated rig ([simulation])")
-        self.config = replace(rig.drive, interface=UDP_LOOPBACK, channel=channel)
+        self.config = on_bus(rig.drive, UDP_LOOPBACK, channel)
         self.devices = simulated_devices(
             rig,
             lambda: open_bus(self.config, filtered=False),
