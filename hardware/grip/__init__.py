@@ -1,0 +1,1 @@
+"""Grip-force sources other than Steerlab's own glove unit."""
