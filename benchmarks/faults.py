@@ -51,7 +51,6 @@ RIGS = {
     "cia402": ROOT / "hardware" / "rigs" / "simulated.toml",
     "sensodrive": ROOT / "hardware" / "rigs" / "sensodrive-sim.toml",
 }
-SIMULATED_RIG = RIGS["cia402"]
 
 PROTOCOL = """
 name = "faults"
