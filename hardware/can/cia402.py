@@ -62,6 +62,7 @@ from steerlab.hardware.interfaces import DriveReading
 
 from .config import ABORT_CONNECTION_OPTIONS, DriveConfig
 from .errors import DriveEnableError, DriveError
+from .fault_log import FaultLog
 from .frames import (
     ABORT_CONNECTION_OPTION,
     COMM_CYCLE_PERIOD,
@@ -425,7 +426,7 @@ class CiA402Drive:
         self._send_lock = self._network.send_lock
         self._sdo_lock = threading.RLock()
         self._cycle_lock = threading.RLock()
-        self._fault_lock = threading.Lock()
+        self._fault_lock = threading.Lock()  # the EMCY history
 
         # command image: what RPDO1 carries
         self._controlword = int(Controlword.DISABLE_VOLTAGE)
@@ -460,8 +461,7 @@ class CiA402Drive:
             self._try_send, config.host_node_id, config.host_heartbeat_ms / 1000.0
         )
 
-        self._faults: collections.deque[DriveFault] = collections.deque(maxlen=_HISTORY)
-        self._active: dict[tuple[str, object], DriveFault] = {}
+        self._fault_log: FaultLog[DriveFault] = FaultLog(_HISTORY)
         self._emcys: collections.deque[Emcy] = collections.deque(maxlen=_HISTORY)
 
         self._reader = BusReader(
@@ -490,8 +490,7 @@ class CiA402Drive:
         with self._cycle_lock:
             self._enabled = False
             self._controlword, self._target = int(Controlword.DISABLE_VOLTAGE), 0
-        with self._fault_lock:
-            self._active.clear()
+        self._fault_log.clear()
         self._hb.lost_reported = False
         if self._sensor_hb is not None:
             # Not watched while enable() (re)starts it: a node still in pre-operational is not
@@ -533,9 +532,9 @@ class CiA402Drive:
             with self._cycle_lock:
                 self._controlword, self._target = int(Controlword.ENABLE_OPERATION), 0
                 self._send_rpdo()
-                if self._active:
-                    first = next(iter(self._active.values()))
-                    raise DriveEnableError(f"drive reported a fault while enabling: {first}")
+                active = self._fault_log.active
+                if active:
+                    raise DriveEnableError(f"drive reported a fault while enabling: {active[0]}")
                 self._enabled = True
         except (SdoAbortedError, SdoCommunicationError, can.CanError, DriveEnableError) as exc:
             message = (
@@ -650,7 +649,7 @@ class CiA402Drive:
         """No active fault, heartbeat present (once watched; the torque sensor node's too, if
         watched), receive thread alive."""
         return (
-            not self._active
+            not self._fault_log.active
             and not self.heartbeat_lost
             and not self.sensor_heartbeat_lost
             and self._reader.alive
@@ -663,14 +662,12 @@ class CiA402Drive:
     @property
     def active_faults(self) -> tuple[DriveFault, ...]:
         """Faults since the last enable() (one per cause)."""
-        with self._fault_lock:
-            return tuple(self._active.values())
+        return self._fault_log.active
 
     @property
     def faults(self) -> tuple[DriveFault, ...]:
         """Every fault recorded (most recent last, bounded history)."""
-        with self._fault_lock:
-            return tuple(self._faults)
+        return self._fault_log.history
 
     @property
     def emergencies(self) -> tuple[Emcy, ...]:
@@ -684,8 +681,7 @@ class CiA402Drive:
         if self.heartbeat_lost:
             self._check_heartbeat(now)
         self._check_sensor_heartbeat(now)
-        with self._fault_lock:
-            first = next(iter(self._active.values()), None)
+        first = next(iter(self._fault_log.active), None)
         if first is None and not self._reader.alive:
             first = DriveFault("thread", "receive thread is not running", None, time.monotonic())
         if first is not None:
@@ -976,12 +972,8 @@ class CiA402Drive:
 
     def _record(self, kind: str, message: str, *, key: object, code: int | None = None) -> None:
         fault = DriveFault(kind, message, code, time.monotonic())
-        with self._fault_lock:
-            dedupe = (kind, key)
-            if key is not None and dedupe in self._active:
-                return
-            self._active[dedupe if key is not None else (kind, id(fault))] = fault
-            self._faults.append(fault)
+        if not self._fault_log.add(fault, kind, key):
+            return
         log.error("drive node %d: %s", self.config.node_id, fault)
         if self._on_fault is not None:
             try:
@@ -1082,8 +1074,7 @@ class CiA402Drive:
                 (State402.SWITCH_ON_DISABLED,), "fault reset (controlword 0x0080)"
             )
             # The reset acknowledged whatever the drive reported before it.
-            with self._fault_lock:
-                self._active = {k: v for k, v in self._active.items() if k[0] != "emcy"}
+            self._fault_log.clear("emcy")
         elif state is not State402.SWITCH_ON_DISABLED:
             # Start from a known state whatever the previous session left behind.
             self._controlword_sdo(Controlword.DISABLE_VOLTAGE)

@@ -50,6 +50,7 @@ from steerlab.hardware.derivatives import LowPassDerivatives
 from steerlab.hardware.interfaces import DriveReading
 
 from .errors import DriveEnableError, DriveError
+from .fault_log import FaultLog
 from .frames import FrameError
 from .sensodrive_config import SensoDriveConfig
 from .sensodrive_frames import (
@@ -212,7 +213,6 @@ class SensoDrive:
         self._send_lock = threading.Lock()
         self._cycle_lock = threading.RLock()
         self._rx_lock = threading.Lock()
-        self._fault_lock = threading.Lock()
         self._state_cond = threading.Condition()
 
         # command image (Steerlab's SI values, already on the fields' steps)
@@ -266,8 +266,7 @@ class SensoDrive:
         self.bad_frames = 0
         self.error_frames = 0
 
-        self._faults: collections.deque[SensoDriveFault] = collections.deque(maxlen=_HISTORY)
-        self._active: dict[tuple[str, object], SensoDriveFault] = {}
+        self._fault_log: FaultLog[SensoDriveFault] = FaultLog(_HISTORY)
         self._closed = False
         self._reader = BusReader(
             bus,
@@ -322,8 +321,7 @@ class SensoDrive:
             self._enabled = False
             self._torque_nm = 0.0
             self.consecutive_missed = self.consecutive_missed_hand = 0
-        with self._fault_lock:
-            self._active.clear()
+        self._fault_log.clear()
         step = "state request (0x200/0x11)"
         try:
             state = self._transition(Command.KEEP, None)
@@ -510,14 +508,12 @@ class SensoDrive:
     @property
     def faults(self) -> tuple[SensoDriveFault, ...]:
         """Every fault recorded (most recent last, bounded history)."""
-        with self._fault_lock:
-            return tuple(self._faults)
+        return self._fault_log.history
 
     @property
     def active_faults(self) -> tuple[SensoDriveFault, ...]:
         """Faults since the last enable() (one per cause)."""
-        with self._fault_lock:
-            return tuple(self._active.values())
+        return self._fault_log.active
 
     def problem(self) -> str | None:
         """A reason to stop the trial now (the first fault since enable(), the others
@@ -832,12 +828,8 @@ class SensoDrive:
 
     def _record(self, kind: str, message: str, *, key: object) -> None:
         fault = SensoDriveFault(kind, message, time.monotonic())
-        with self._fault_lock:
-            dedupe = (kind, key)
-            if key is not None and dedupe in self._active:
-                return
-            self._active[dedupe if key is not None else (kind, id(fault))] = fault
-            self._faults.append(fault)
+        if not self._fault_log.add(fault, kind, key):
+            return
         log.error("%s", message)
 
 
