@@ -25,7 +25,10 @@ Jacobian, scaled by the residual's own ratio to its noise where above 1.
 
 Three fits per rendering (``RigFromData.fits``): ``nominal`` (the rig's b and k, I free),
 ``friction`` (the same with F_c and m·g·r free), ``free`` (I, b, k, F_c, m·g·r free: the data's
-wheel, stated only); the two timings are free in all. What the simulated rig takes from them
+wheel, stated only); the two timings are free in all. Where neither rendering's ``friction`` fit
+explains the data, a ``lag`` fit per rendering frees a first-order actuator lag as well (the
+rendering and timing are then read from it; the lag is left to the mechanisms). What the
+simulated rig takes from them
 (``convention``; docs/diagnosis.md, "The rig and the timing, from the data"):
 
 - the rendering, where the ``nominal`` fits differ by more than ``RENDERING_MIN_M2LL`` units
@@ -35,7 +38,8 @@ wheel, stated only); the two timings are free in all. What the simulated rig tak
   that fit leaves more than ``MAX_NOISE_RATIO`` × the noise;
 - from that rendering's ``nominal`` fit where it is within ``MAX_NOISE_RATIO`` × the noise, else
   its ``friction`` fit (:func:`convention_fit`): the inertia, where it departs from the rig's by
-  more than 3 SEMs and ``INERTIA_MIN_REL`` and the fit is within the noise (no mechanism acts as
+  more than 3 SEMs and ``INERTIA_MIN_REL`` (3 SEMs alone where the rendering was the nearest
+  inertia's) and the fit is within the noise (no mechanism acts as
   an inertia; damping and stiffness stay the rig's: a departure there is friction or an
   unbalanced wheel, which the diagnosis names as mechanisms);
 - the angle's timing where it is not before the command (before it is the torque arriving
@@ -84,10 +88,15 @@ FIT_NAMES = (
     "torque_offset_samples",
     "coulomb_Nm",
     "gravity_Nm",
+    "lag_s",
 )
 NOMINAL_FREE = ("inertia_kgm2", "coulomb_Nm", "gravity_Nm")
 WHEEL_FREE = ("inertia_kgm2", "damping_Nms_per_rad", "stiffness_Nm_per_rad", "coulomb_Nm",
               "gravity_Nm")  # fmt: skip
+# A first-order lag of the actuator, free beside the nominal wheel's: a mechanism the diagnosis
+# names, but one that bends the wheel's equation, so the rendering and timing are read with it.
+LAG_FREE = (*NOMINAL_FREE, "lag_s")
+LAG_START_S = 1e-3
 # Read offsets a timing fit starts from (samples): Steerlab's and the end-of-interval read.
 TIMING_STARTS = ((0.0, 0.0), (1.0, 1.0), (1.0, 0.0), (0.0, 1.0))
 
@@ -218,6 +227,10 @@ class RigFromData:
             f"{_pm(wv['coulomb_Nm'], we['coulomb_Nm'])} N·m, m·g·r = "
             f"{_pm(wv['gravity_Nm'], we['gravity_Nm'])} N·m"
         )
+        if "lag_s" in w.free:
+            wheel = wheel.replace("with b, k,", "with b, k, an actuator lag,") + (
+                f", lag = {_pm(1e3 * wv['lag_s'], 1e3 * we['lag_s'])} ms"
+            )
         return (
             f"the data: I = {_pm(v['inertia_kgm2'], e['inertia_kgm2'])} kg·m², {told}, "
             f"{timing} ({wheel}); {self.rig_label}: I = {r.inertia_kgm2:.4g} kg·m², "
@@ -337,17 +350,26 @@ def _prepare(rec: TrialRecord) -> _Trial | None:
 
 def _residual(t: _Trial, x: np.ndarray, rendering: str) -> np.ndarray:
     """G·Tp − Td·e^{−sτ_d h} − ([I s² + R (b s + k)]·Θ + F_c·F + m·g·r·S)·e^{−sτ_θ h} at every
-    bin of ``t`` (F, S: the spectra of tanh(ω/ε) and sin θ − θ, read with the angle)."""
-    I, b, k, tth, ttd, fc, grav = x
+    bin of ``t`` (F, S: the spectra of tanh(ω/ε) and sin θ − θ, read with the angle); with a
+    lag τ_a of the actuator, what the motor renders (G·Tp, and R (b s + k)·Θ where sampled)
+    passes through 1/(1 + s τ_a) first."""
+    I, b, k, tth, ttd, fc, grav, lag = x
     h = t.h
     G = t.hold
-    R = G if rendering == "sampled" else 1.0
     shift = np.exp(-t.s * tth * h)
     td = t.td * np.exp(-t.s * ttd * h)
-    wheel = (I * t.s**2 + R * (b * t.s + k)) * t.th
+    motor = G * t.tp
+    wheel = I * t.s**2 * t.th
+    rendered = (b * t.s + k) * t.th
+    if rendering == "sampled":
+        motor = motor - G * rendered * shift
+    else:
+        wheel = wheel + rendered
+    if lag != 0.0:
+        motor = motor / (1.0 + t.s * lag)
     if fc != 0.0 or grav != 0.0:
         wheel = wheel + fc * t.friction + grav * t.gravity
-    return G * t.tp - td - wheel * shift
+    return motor - td - wheel * shift
 
 
 def _noise_weights(t: _Trial, x: np.ndarray, rendering: str) -> np.ndarray:
@@ -377,9 +399,14 @@ def _fit(
     from (its timings: no search over TIMING_STARTS)."""
     names = FIT_NAMES
     base = np.array(
-        [rig.inertia_kgm2, rig.damping_nms_per_rad, rig.stiffness_nm_per_rad, 0.0, 0.0, 0.0, 0.0]
+        [rig.inertia_kgm2, rig.damping_nms_per_rad, rig.stiffness_nm_per_rad]
+        + [0.0] * (len(names) - 3)
     )
+    if "lag_s" in free:
+        base[names.index("lag_s")] = LAG_START_S
     idx = [i for i, n in enumerate(names) if n in free or n.endswith("offset_samples")]
+    # A lag is ≥ 0 (a negative one is a command that arrives before it is sent).
+    lower = np.array([0.0 if names[i] == "lag_s" else -np.inf for i in idx])
 
     def full(z: np.ndarray) -> np.ndarray:
         x = base.copy()
@@ -413,7 +440,7 @@ def _fit(
             z0 = x[idx].copy() if it > 0 else base[idx].copy()
             z0[[j for j, i in enumerate(idx) if i == 3]] = a
             z0[[j for j, i in enumerate(idx) if i == 4]] = d
-            r = least_squares(fun, z0, x_scale="jac")
+            r = least_squares(fun, np.maximum(z0, lower), x_scale="jac", bounds=(lower, np.inf))
             if best is None or r.cost < best.cost:
                 best = r
         assert best is not None
@@ -434,10 +461,16 @@ def _fit(
 
 def convention_fit(fits: dict[str, WheelFit], rendering: str) -> WheelFit:
     """The fit the convention reads its inertia and timing from: the rig's b and k with only the
-    inertia free where that explains the data within noise (the timings are sharpest there);
-    else the one with dry friction and an imbalance free as well."""
+    inertia free where that explains the data within noise (the timings are sharpest there); else,
+    where one was fitted and explains them, the one with an actuator lag free; else the one with
+    dry friction and an imbalance free as well."""
     plain = fits[f"{rendering}/nominal"]
-    return plain if plain.noise_ratio <= MAX_NOISE_RATIO else fits[f"{rendering}/friction"]
+    if plain.noise_ratio <= MAX_NOISE_RATIO:
+        return plain
+    lag = fits.get(f"{rendering}/lag")  # fitted only where neither wheel explains the data
+    if lag is not None and lag.noise_ratio <= MAX_NOISE_RATIO:
+        return lag
+    return fits[f"{rendering}/friction"]
 
 
 def _timing(v: float, e: float, pinned: bool, snap: bool = False) -> float:
@@ -492,9 +525,22 @@ def identify(
         fits[f"{rendering}/friction"] = _fit(trials, rig, rendering, NOMINAL_FREE, plain)
         fits[f"{rendering}/free"] = _fit(trials, rig, rendering, WHEEL_FREE, plain)
     notes: list[str] = []
+    # Neither wheel explains the data, even with friction: an actuator lag bends the equation
+    # (under an end-of-interval read it and the read partly cancel, and the timing read without
+    # it is wrong). The rendering and timing are then read with a lag free.
+    basis, near = "nominal", "friction"
+    if min(fits[f"{r}/friction"].noise_ratio for r in RENDERINGS) > MAX_NOISE_RATIO:
+        for rendering in RENDERINGS:
+            fits[f"{rendering}/lag"] = _fit(trials, rig, rendering, LAG_FREE)
+        if min(fits[f"{r}/lag"].noise_ratio for r in RENDERINGS) <= MAX_NOISE_RATIO:
+            basis = near = "lag"
+            for rendering in RENDERINGS:  # the data's wheel, stated: with the lag free too
+                fits[f"{rendering}/free"] = _fit(
+                    trials, rig, rendering, (*WHEEL_FREE, "lag_s"), fits[f"{rendering}/lag"]
+                )
     source: dict[str, str] = {}
-    d = fits["sampled/nominal"].m2ll - fits["continuous/nominal"].m2ll
-    misfit = min(fits["sampled/nominal"].noise_ratio, fits["continuous/nominal"].noise_ratio)
+    d = fits[f"sampled/{basis}"].m2ll - fits[f"continuous/{basis}"].m2ll
+    misfit = min(fits[f"sampled/{basis}"].noise_ratio, fits[f"continuous/{basis}"].noise_ratio)
     # Where the equation leaves more than noise, the difference must stand above that misfit.
     told = abs(d) > RENDERING_MIN_M2LL * max(1.0, misfit)
     if "rendering" in stated:
@@ -503,20 +549,26 @@ def identify(
     elif told:
         rendering = "continuous" if d > 0 else "sampled"
         source["rendering"] = "data"
-    elif min(fits[f"{r}/friction"].noise_ratio for r in RENDERINGS) > MAX_NOISE_RATIO:
+    elif min(fits[f"{r}/{near}"].noise_ratio for r in RENDERINGS) > MAX_NOISE_RATIO:
         rendering = rig_rendering
         source["rendering"] = "rig"
     else:
         # Both fit as well: the one that needs the smaller change of the rig's inertia (on
         # equal terms, the rig's own), read with friction and imbalance free.
         def change(r: str) -> float:
-            return abs(fits[f"{r}/friction"].values["inertia_kgm2"] - rig.inertia_kgm2)
+            return abs(fits[f"{r}/{near}"].values["inertia_kgm2"] - rig.inertia_kgm2)
 
         rendering = min(RENDERINGS, key=lambda r: (change(r), r != rig_rendering))
         if change(rendering) > INERTIA_MIN_REL * rig.inertia_kgm2:
             rendering = rig_rendering  # neither gives the rig's wheel: a mechanism bends both
         source["rendering"] = "rig" if rendering == rig_rendering else "data (closest inertia)"
     f = convention_fit(fits, rendering)
+    if f is fits.get(f"{rendering}/lag"):
+        notes.append(
+            f"an actuator lag of {1e3 * f.values['lag_s']:.3g} ms bends the wheel's equation: "
+            "the rendering and the timing are read with it free (the lag is left to the "
+            "mechanisms)"
+        )
     # Pinned down: the rig's own wheel explains the data within noise. Where it does only with
     # friction free, that friction's form may not be ours (Stribeck): fractions are not taken.
     pinned = fits[f"{rendering}/nominal"].noise_ratio <= MAX_NOISE_RATIO
@@ -524,7 +576,14 @@ def identify(
     inertia = rig.inertia_kgm2
     source["inertia"] = "rig"
     dI = v["inertia_kgm2"] - rig.inertia_kgm2
-    if abs(dI) > 3 * e["inertia_kgm2"] and abs(dI) > INERTIA_MIN_REL * rig.inertia_kgm2:
+    # Where the two renderings fit alike and the one nearest the rig's inertia was taken, the
+    # wheel lies between them (rendered in a loop faster than the recording, its outputs
+    # averaged): to first order in h that is a rendering's wheel with another inertia, so the
+    # data's inertia is taken however small its departure.
+    between = source["rendering"] == "data (closest inertia)"
+    if abs(dI) > 3 * e["inertia_kgm2"] and (
+        abs(dI) > INERTIA_MIN_REL * rig.inertia_kgm2 or between
+    ):
         if pinned:
             inertia = v["inertia_kgm2"]
             source["inertia"] = "data"

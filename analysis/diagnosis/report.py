@@ -462,6 +462,7 @@ FIT_LABELS = {
     "nominal": "I free",
     "friction": "I, F_c, m·g·r free",
     "free": "I, b, k, F_c, m·g·r free",
+    "lag": "I, F_c, m·g·r, τ_a free",
 }
 _PARAM_LABELS = {
     "inertia_kgm2": ("I", "kg·m²"),
@@ -471,6 +472,7 @@ _PARAM_LABELS = {
     "torque_offset_samples": ("torque read after the command", "samples"),
     "coulomb_Nm": ("dry friction F_c", "N·m"),
     "gravity_Nm": ("imbalance m·g·r", "N·m"),
+    "lag_s": ("actuator lag τ_a", "s"),
 }
 
 
@@ -483,12 +485,16 @@ def _rig_from_data_section(result) -> str:
     rows = []
     for key, f in d["fits"].items():
         rendering, which = key.split("/")
+        label = FIT_LABELS.get(which, which)
+        if which == "free" and "lag_s" in f["free"]:
+            label = label.replace(" free", ", τ_a free")
         cells = []
         for p in _PARAM_LABELS:
-            v, e = f["values"][p], f["sem"].get(p)
-            cells.append(f"{_n(v, 4)} ± {_n(e, 1)}" if e else f"{_n(v, 4)} (rig's)")
+            v, e = f["values"].get(p, 0.0), f["sem"].get(p)
+            fixed = "none" if p == "lag_s" else f"{_n(v, 4)} (rig's)"
+            cells.append(f"{_n(v, 4)} ± {_n(e, 1)}" if e else fixed)
         rows.append(
-            [_e(f"{rendering}, {FIT_LABELS.get(which, which)}")]
+            [_e(f"{rendering}, {label}")]
             + cells
             + [_n(f["m2ll"], 5), _n(f["noise_ratio"], 3)]
         )
