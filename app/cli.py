@@ -50,6 +50,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         world=_world_from_model(a.model) if a.model else None,
         progress=Progress("simulate"),
         rig_model=a.rig_model,
+        lsl=a.lsl,
     )
     print(f"{len(res)} session file(s) in {a.out} ({time.monotonic() - t0:.1f} s)")
     return 0
@@ -143,6 +144,7 @@ def _cmd_run(a: argparse.Namespace) -> int:
         breaks=not a.no_breaks,
         rig_check=a.rig_check,
         on_abort=a.on_abort,
+        lsl=a.lsl,
     )
     return 0 if state is State.DONE else 3
 
@@ -185,6 +187,189 @@ def _cmd_gui(a: argparse.Namespace) -> int:
     from steerlab.app.gui.main import run_gui
 
     return run_gui(rig=a.rig, out=a.out, protocol=a.protocol)
+
+
+# -- other recordings into a study: XDF and TekScan (docs/import.md) -------------------------------
+def _import_failed(a: argparse.Namespace, e: Exception) -> int:
+    print(f"steerlab {a.command}: error: {e}", file=sys.stderr)
+    return EXIT_BAD_INPUT
+
+
+def _cmd_import_xdf(a: argparse.Namespace) -> int:
+    from steerlab.protocols.trial_extras import TrialExtrasError
+    from steerlab.protocols.xdf_import import XdfImportError, import_xdf
+
+    try:
+        res = import_xdf(
+            a.xdf, a.session, match=a.match, method=a.method, streams=a.stream,
+            dejitter=a.dejitter, replace=a.replace, dry_run=a.dry_run,
+        )  # fmt: skip
+    except (XdfImportError, TrialExtrasError) as e:
+        return _import_failed(a, e)
+    print(res.summary())
+    for line in res.problems:
+        print(f"steerlab import-xdf: warning: {line}", file=sys.stderr)
+    if a.dry_run:
+        print("dry run: nothing written")
+    return 0
+
+
+def _cmd_import_tekscan(a: argparse.Namespace) -> int:
+    from steerlab.protocols.tekscan_import import TekscanImportError, import_tekscan
+    from steerlab.protocols.trial_extras import TrialExtrasError
+    from steerlab.protocols.xdf_import import XdfImportError
+
+    try:
+        res = import_tekscan(
+            a.movie, a.session, trial=a.trial, subject=a.subject, hand=a.hand,
+            n_per_raw=a.n_per_raw, sync_frame=a.sync_frame, sync_sample=a.sync_sample,
+            sync_mark=a.sync_mark, reference=a.reference, max_lag_s=a.max_lag_s,
+            method=a.method, replace=a.replace, allow_truncated=a.allow_truncated,
+            dry_run=a.dry_run,
+        )  # fmt: skip
+    except (TekscanImportError, TrialExtrasError, XdfImportError) as e:
+        return _import_failed(a, e)
+    print(res.summary())
+    if a.dry_run:
+        print("dry run: nothing written")
+    return 0
+
+
+def _cmd_record_lsl(a: argparse.Namespace) -> int:
+    from steerlab.protocols.xdf_writer import LslRecorder, RecorderError, XdfWriteError
+
+    rec = LslRecorder(
+        a.out, types=a.type or (), names=a.name or (), expect=a.expect, resolve_s=a.wait,
+        overwrite=a.overwrite,
+        on_error=lambda m: print(f"steerlab record-lsl: warning: {m}", file=sys.stderr),
+    )  # fmt: skip
+    try:
+        streams = rec.start()
+    except (RecorderError, XdfWriteError) as e:
+        return _import_failed(a, e)
+    for s in streams:
+        print(f"recording {s.name!r} (type {s.type}) as stream {s.stream_id}")
+    print("Ctrl-C stops" + (f"; stopping after {a.duration:g} s" if a.duration else ""))
+    try:
+        if a.duration:
+            time.sleep(a.duration)
+        else:
+            while True:
+                time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    path = rec.stop()
+    counts = ", ".join(f"{s.name}: {s.samples}" for s in rec.streams)
+    print(f"wrote {path} ({counts} samples)")
+    return 0
+
+
+def _add_import_commands(sub) -> None:
+    x = _subparser(
+        sub,
+        "import-xdf",
+        "an XDF recording's streams → extra channels of the matching trials",
+        "Put the streams of an XDF recording (LabRecorder's, or steerlab record-lsl's) onto the "
+        "trials of session files: trials matched by Steerlab's marker stream in the file, or by "
+        "each trial's recorded LSL clock; each stream resampled onto the trial's samples "
+        "(linear at or above the trial's rate, else the latest sample held) as channels "
+        "xdf_STREAM_LABEL with their units, its samples as recorded kept beside them "
+        "(docs/import.md). The trials' own channels are never touched.",
+        "  steerlab import-xdf lab/S03.xdf --session sessions/study\n"
+        "  steerlab import-xdf lab/S03.xdf --session sessions/study/S03.h5 --stream EMG "
+        "--method linear",
+    )
+    x.add_argument("xdf", metavar="FILE.xdf", help="the XDF recording")
+    x.add_argument("--session", required=True, help="a session file (.h5) or a folder of them")
+    x.add_argument("--match", choices=("auto", "markers", "clock"), default="auto",
+                   help="how trials are found on the recording's clock: Steerlab's trial_start "
+                   "markers in the file, the trials' lsl_clock_s, or markers when the file has "
+                   "them (default)")  # fmt: skip
+    x.add_argument("--method", choices=("auto", "linear", "hold"), default="auto",
+                   help="resampling: linear interpolation, or zero-order hold of the latest "
+                   "sample; default: linear for a regular stream at or above the trial's rate, "
+                   "hold otherwise")  # fmt: skip
+    x.add_argument("--stream", action="append", metavar="NAME_OR_TYPE",
+                   help="import only this stream (its name or type; repeatable); default: every "
+                   "stream but Steerlab's own")  # fmt: skip
+    x.add_argument("--dejitter", action="store_true", help="let pyxdf put regular streams' "
+                   "time stamps on a straight line (default: as recorded)")  # fmt: skip
+    x.add_argument("--replace", action="store_true", help="replace channels an earlier import "
+                   "made (default: refuse, nothing written)")  # fmt: skip
+    x.add_argument("--dry-run", action="store_true", help="match and check, write nothing")
+    x.set_defaults(func=_cmd_import_xdf)
+
+    t = _subparser(
+        sub,
+        "import-tekscan",
+        "a TekScan ASCII movie → a trial's grip channel",
+        "Put a TekScan ASCII movie (.asf/.csv export; one hand, or both hands together) onto "
+        "one trial as grip_force_tekscan_HAND_N, aligned by a sync frame the lab recorded or, "
+        "without one, by cross-correlation with the trial's own grip force (else the driver "
+        "torque's magnitude), with the lag's uncertainty (docs/import.md). The trial's own "
+        "channels are never touched.",
+        "  steerlab import-tekscan grip/S03_t05_L.asf --hand left --session sessions/study "
+        "--subject S03 --trial 5\n"
+        "  steerlab import-tekscan grip/S03_t05.csv --session sessions/study/S03.h5 --trial "
+        "05_BT12_rep1_a1 --n-per-raw 0.0125 --sync-frame 12",
+    )
+    t.add_argument("movie", metavar="FILE", help="the TekScan ASCII export (.asf or .csv)")
+    t.add_argument("--session", required=True, help="a session file (.h5) or a folder of them")
+    t.add_argument("--subject", help="with a folder: the subject's file (S03 for S03.h5)")
+    t.add_argument("--trial", required=True, help="the trial: its index (its latest attempt) "
+                   "or its group name (05_BT12_rep1_a1)")  # fmt: skip
+    t.add_argument(
+        "--hand",
+        choices=("left", "right", "total"),
+        default="total",
+        help="which hand the movie is (total: both hands in one movie; default)",
+    )
+    t.add_argument("--n-per-raw", type=_positive_number, help="N per raw count, for a movie in "
+                   "raw counts (UNITS raw)")  # fmt: skip
+    t.add_argument("--sync-frame", type=_whole_number(0), help="the movie's frame at the trial's "
+                   "first sample (or at --sync-sample / --sync-mark): align by it, not by "
+                   "cross-correlation")  # fmt: skip
+    t.add_argument("--sync-sample", type=_whole_number(0), help="with --sync-frame: the trial "
+                   "sample the frame is at (default 0)")  # fmt: skip
+    t.add_argument("--sync-mark", help="with --sync-frame: the trial's first mark of this kind is "
+                   "where the frame is")  # fmt: skip
+    t.add_argument("--reference", help="the trial's channel to cross-correlate with (default: "
+                   "its grip force of that hand, else |driver_torque_Nm|)")  # fmt: skip
+    t.add_argument(
+        "--max-lag-s",
+        type=_positive_number,
+        help="search lags within ± this "
+        "(default: every lag that leaves half the shorter recording overlapping)",
+    )
+    t.add_argument("--method", choices=("auto", "linear", "hold"), default="auto",
+                   help="resampling: default hold (latest frame) for a movie slower than the "
+                   "trial, else linear")  # fmt: skip
+    t.add_argument("--allow-truncated", action="store_true", help="read a movie without its "
+                   "closing @@ (warned; an incomplete last frame dropped)")  # fmt: skip
+    t.add_argument("--replace", action="store_true", help="replace a channel an earlier import "
+                   "made (default: refuse)")  # fmt: skip
+    t.add_argument("--dry-run", action="store_true", help="align and report, write nothing")
+    t.set_defaults(func=_cmd_import_tekscan)
+
+    r = _subparser(
+        sub,
+        "record-lsl",
+        "record LSL streams into an XDF file (a small LabRecorder)",
+        "Record Lab Streaming Layer streams into an XDF file until Ctrl-C (or --duration): their "
+        "samples with time stamps, clock offsets every 5 s, as LabRecorder writes them; pyxdf "
+        "and steerlab import-xdf read it (docs/import.md).",
+        "  steerlab record-lsl --out lab/S03.xdf --type Steerlab --type Markers --type EMG",
+    )
+    r.add_argument("--out", required=True, help="the XDF file to write")
+    r.add_argument("--type", action="append", help="record streams of this type (repeatable)")
+    r.add_argument("--name", action="append", help="record the stream of this name (repeatable)")
+    r.add_argument("--expect", type=COUNT, default=1, help="wait for at least this many streams "
+                   "(default 1)")  # fmt: skip
+    r.add_argument("--wait", type=_positive_number, default=5.0, help="how long to look for "
+                   "streams, s (default 5)")  # fmt: skip
+    r.add_argument("--duration", type=_positive_number, help="stop after this many seconds")
+    r.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    r.set_defaults(func=_cmd_record_lsl)
 
 
 def _whole_number(low: int):
@@ -278,6 +463,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--model", help="extended world model (model.toml from steerlab diagnose)")
     s.add_argument("--rig-model", help="rig.json of steerlab rig-check: simulate the measured "
                    "wheel instead of the nominal one")  # fmt: skip
+    s.add_argument("--lsl", action=argparse.BooleanOptionalAction, default=None,
+                   help="publish each session's signals and events on the Lab Streaming Layer "
+                   "(LabRecorder; batch time stamps are synthetic, docs/lsl.md); default off "
+                   "(STEERLAB_LSL=on changes it): a batch study must not flood a lab's "
+                   "network")  # fmt: skip
     s.set_defaults(func=_cmd_simulate)
 
     e = _subparser(
@@ -397,6 +587,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "a fault aborted: ask (default when stdin is a terminal), redo it, go on to "
                    "the next (it is run again after the others), or stop the session (default "
                    "otherwise); an emergency stop always ends the session")  # fmt: skip
+    n.add_argument("--lsl", action=argparse.BooleanOptionalAction, default=None,
+                   help="publish the session's signals and events on the Lab Streaming Layer, "
+                   "for LabRecorder beside EMG or EEG (docs/lsl.md); default on "
+                   "(STEERLAB_LSL=off changes it); the trials record the LSL clock "
+                   "either way")  # fmt: skip
     n.set_defaults(func=_cmd_run)
 
     c = _subparser(
@@ -473,6 +668,7 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("--out", default="sessions", help="data root (default: sessions/)")
     u.add_argument("--protocol", help="protocol TOML (default: the paper's protocol)")
     u.set_defaults(func=_cmd_gui)
+    _add_import_commands(sub)
     return p
 
 

@@ -10,6 +10,11 @@ Each stops the motor at once (zero torque, drive disabled), ends the trial as ab
 reason, keeps every recorded sample, and ends the session. Run again with ``--resume`` to
 continue.
 
+On the lab's clock: unless ``lsl`` is False (``--no-lsl``, or ``STEERLAB_LSL=off``), the session
+publishes its signals and events on the Lab Streaming Layer for LabRecorder
+(:mod:`protocols.lsl_publisher`, ``docs/lsl.md``); each trial records the LSL clock at its first
+sample either way.
+
 A trial aborted by a fault (a stalled loop, a drive fault, the glove stream stopping, ...) does
 not end the session by itself: ``on_abort`` (``--on-abort``) says what follows. ``ask`` (the
 default when stdin is a terminal) shows the reason and asks "[r]edo the trial, [g]o on to the
@@ -46,6 +51,16 @@ from steerlab.protocols.datafile import (
 )
 from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.events import StateChanged, TrialEnded, TrialStarted
+from steerlab.protocols.lsl_publisher import (
+    HOST,
+    MARKER_TYPE,
+    SIGNAL_TYPE,
+    LabClock,
+    LslPublisher,
+    close_lab_subscriber,
+    lab_subscriber,
+    publish_default,
+)
 from steerlab.protocols.names import inside
 from steerlab.protocols.protocol import load_protocol
 from steerlab.protocols.records import STATUS_ABORTED
@@ -190,13 +205,18 @@ def run_session(
     say=print,
     rig_check: str | None = None,
     on_abort: str | None = None,
+    lsl: bool | None = None,
 ) -> State:
     """Run the session; its final state (DONE when every trial is complete).
 
     ``on_abort``: one of :data:`ON_ABORT` (the module docstring); None: ``ask`` when stdin is a
-    terminal, else ``stop``."""
+    terminal, else ``stop``. ``lsl``: publish on LSL (None: yes, unless ``STEERLAB_LSL=off``)."""
     if subject_number < 1:
         raise RunError(f"--subject must be ≥ 1, got {subject_number}")
+    try:
+        publish = publish_default(True) if lsl is None else bool(lsl)
+    except ValueError as e:
+        raise RunError(str(e)) from None
     interactive = sys.stdin is not None and sys.stdin.isatty()
     if on_abort is None:
         on_abort = "ask" if interactive else "stop"
@@ -254,7 +274,7 @@ def run_session(
         try:
             return _run(
                 me, rig, rig_path, subject_number, plan, path, attempts, breaks, say, lock,
-                last_check, on_abort,
+                last_check, on_abort, publish,
             )  # fmt: skip
         finally:
             _release(me)
@@ -264,7 +284,7 @@ def run_session(
 
 def _run(
     me, rig, rig_path, subject_number, plan, path, attempts, breaks, say, lock, last_check,
-    on_abort,
+    on_abort, publish,
 ) -> State:  # fmt: skip
     # The stop signals act from now on (a stop during the rig's bring-up ends the session before
     # its first trial), not only once the engine runs.
@@ -281,7 +301,7 @@ def _run(
         emergency_stop(f"emergency stop ({signal.Signals(signum).name})")
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGUSR1)}
-    loop = writer = None
+    loop = writer = lab = None
     # numba's error highlighting (colorama) registers a reset at exit in every process that
     # formats a typing message while compiling; the loop's and the simulated lab's processes
     # do, and on a terminal each then wrote a stray "\x1b[0m" as it ended. The processes
@@ -302,8 +322,32 @@ def _run(
         # The drive gives the angle as counts × its step: stored as those counts (when exact;
         # docs/data-format.md).
         quanta = {"wheel_angle_rad": rig.drive.angle_quantum_rad}
-        writer = SessionWriter(path, extra_attributes=extra, lock=lock, quanta=quanta)
+        # The LSL clock at each trial's first sample goes into the file, published or not.
+        clock = LabClock(HOST, warn=lambda m: say(f"warning: {m}"))
+        writer = SessionWriter(
+            path,
+            extra_attributes=extra,
+            lock=lock,
+            quanta=quanta,
+            first_sample_attributes=clock.first_sample_attributes,
+        )
+        lab = lab_subscriber(
+            clock,
+            publish,
+            rig=Path(rig.source).stem,
+            session_path=path,
+            nominal_rate_hz=rig.loop_rate_hz,
+            warn=lambda m: say(f"warning: {m}"),
+        )
+        # Before the writer: the clock reads each block's arrival before the file's work on it
+        # (microseconds to publish; it never raises).
+        engine.subscribe(lab)
         engine.subscribe(writer)
+        if isinstance(lab, LslPublisher):
+            say(
+                f"publishing on LSL: 'Steerlab {plan.subject}' (type {SIGNAL_TYPE}) and "
+                f"'Steerlab {plan.subject} markers' (type {MARKER_TYPE}); --no-lsl turns it off"
+            )
         engine.subscribe(_reporter(say, len(plan.trials)))
         holder["engine"] = engine
         if "stopped" in holder:
@@ -325,6 +369,7 @@ def _run(
             loop.close()
         if writer is not None:
             writer.close()
+        close_lab_subscriber(lab)
     remaining = len(engine.pending())
     if state is State.DONE:
         say(f"session complete: {path}")

@@ -1,4 +1,10 @@
-"""``steerlab simulate``: run the protocol for N simulated subjects through the engine."""
+"""``steerlab simulate``: run the protocol for N simulated subjects through the engine.
+
+Each trial records the LSL clock at its first sample (``lsl_clock_s``): synthetic time stamps
+in batch mode, the host's in real time (:mod:`protocols.lsl_publisher`). Nothing is published
+on LSL unless asked (``--lsl``, or ``STEERLAB_LSL=on``): a study of many subjects computed in
+batch must not flood a lab's network with streams (``docs/lsl.md``).
+"""
 
 from __future__ import annotations
 
@@ -26,6 +32,14 @@ from steerlab.protocols.datafile import (
 )
 from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.events import TrialEnded
+from steerlab.protocols.lsl_publisher import (
+    SYNTHETIC,
+    LabClock,
+    close_lab_subscriber,
+    lab_clock_for,
+    lab_subscriber,
+    publish_default,
+)
 from steerlab.protocols.names import inside
 from steerlab.protocols.protocol import Protocol, VirtualWheel, load_protocol
 from steerlab.protocols.session import build_plan, subject_id
@@ -48,6 +62,7 @@ class SimulationJob:
     locked: bool = False  # the calling process holds the file's writer lock
     wheel: VirtualWheel | None = None  # the wheel the loop renders (None: the protocol's)
     wheel_used: dict | None = None  # which wheel, for the session file (see wheel_record)
+    lsl: bool = False  # publish the session on LSL (docs/lsl.md)
 
 
 def session_path(out_dir: str | Path, subject: str) -> Path:
@@ -74,6 +89,8 @@ def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | Non
         spread=PopulationSpread(),
     )
     engine = SessionEngine(plan, loop, attempts=attempts)
+    # In batch mode the samples come faster than real time: their LSL time stamps are synthetic.
+    clock = lab_clock_for(loop) if job.realtime else LabClock(SYNTHETIC)
     writer = SessionWriter(
         path,
         lock=not job.locked,
@@ -91,7 +108,16 @@ def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | Non
         # the file, and on a loaded machine 0.5 s of wall time passes within most trials); a
         # killed simulation re-runs its unfinished trial on --resume anyway.
         flush_interval_s=0.5 if job.realtime else 30.0,
+        first_sample_attributes=clock.first_sample_attributes,
     )
+    lab = lab_subscriber(
+        clock,
+        job.lsl,
+        rig="simulated",
+        session_path=path,
+        nominal_rate_hz=protocol.loop_rate_hz,
+    )
+    engine.subscribe(lab)  # first: the clock reads each block's arrival (protocols.lsl_publisher)
     engine.subscribe(writer)
     if on_trial is not None:
         engine.subscribe(lambda e: on_trial(e) if isinstance(e, TrialEnded) else None)
@@ -99,6 +125,7 @@ def run_subject(job: SimulationJob, on_trial: Callable[[TrialEnded], None] | Non
         state = engine.run()
     finally:
         writer.close()
+        close_lab_subscriber(lab)
     return {
         "subject": plan.subject,
         "state": state.value,
@@ -190,9 +217,15 @@ def simulate_study(
     world: WorldConfig | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     rig_model: str | Path | None = None,
+    lsl: bool | None = None,
 ) -> list[dict]:
     """``rig_model``: a rig check's ``rig.json``: the simulated wheel is the measured one
-    (inertia, rendered damping and stiffness, friction, imbalance, actuator lag)."""
+    (inertia, rendered damping and stiffness, friction, imbalance, actuator lag).
+    ``lsl``: publish each session on LSL (None: no, unless ``STEERLAB_LSL=on``)."""
+    try:
+        publish = publish_default(False) if lsl is None else bool(lsl)
+    except ValueError as e:
+        raise SimulateError(str(e)) from None
     if n_subjects < 1:
         raise SimulateError(f"--subjects must be ≥ 1, got {n_subjects}")
     # 0 would otherwise read as "not given" (the default) and a negative count as 1.
@@ -236,7 +269,7 @@ def simulate_study(
                 p.unlink()
         return _simulate_locked(
             out, subjects, n_subjects, seed, protocol_path, protocol, realtime, resume, jobs,
-            world, progress, rig_model,
+            world, progress, rig_model, publish,
         )  # fmt: skip
 
 
@@ -276,6 +309,7 @@ def _simulate_locked(
     world: WorldConfig | None,
     progress: Callable[[int, int, str], None] | None,
     rig_model: str | Path | None = None,
+    publish: bool = False,
 ) -> list[dict]:
     world = world or WorldConfig(fs_hz=protocol.loop_rate_hz)
     wheel, measured = None, None
@@ -297,6 +331,7 @@ def _simulate_locked(
             locked=True,
             wheel=wheel,
             wheel_used=used,
+            lsl=publish,
         )  # fmt: skip
         for i in range(1, n_subjects + 1)
     ]

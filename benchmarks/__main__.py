@@ -11,6 +11,11 @@ import pkgutil
 import sys
 from pathlib import Path
 
+from steerlab.benchmarks._lsl_loopback import keep_lsl_on_loopback
+
+# Before any benchmark imports pylsl: its LSL traffic stays on the loopback (docs/lsl.md).
+keep_lsl_on_loopback()
+
 
 def available() -> list[str]:
     here = Path(__file__).parent

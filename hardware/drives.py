@@ -25,15 +25,15 @@ A new kind is one module and one line in :data:`DRIVE_KINDS`.
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any, Protocol, cast, runtime_checkable
 
 import can
 
-from steerlab.hardware.can.config import ConfigError, SafetyConfig
+from steerlab.hardware.can.config import SafetyConfig
 from steerlab.hardware.interfaces import RigDrive
+from steerlab.hardware.kinds import checked_name, load_kind
 
 #: kind name → "module:attribute" of its KIND. Imported only when a rig file names it.
 DRIVE_KINDS: dict[str, str] = {
@@ -116,26 +116,12 @@ def kind_name(document: dict[str, Any], source: str) -> str:
     """The drive kind a parsed rig file names (``[drive] kind``; :data:`DEFAULT_KIND` if none)."""
     drive = document.get("drive")
     name = drive.get("kind", DEFAULT_KIND) if isinstance(drive, dict) else DEFAULT_KIND
-    if name not in DRIVE_KINDS:
-        raise ConfigError(
-            source,
-            "drive",
-            "kind",
-            f"unknown drive kind {name!r} (known: {', '.join(sorted(DRIVE_KINDS))})",
-        )
-    return name
+    return checked_name(DRIVE_KINDS, name, source, "drive", "drive kind")
 
 
 def drive_kind(name: str) -> DriveKind:
     """The kind called ``name`` (a key of :data:`DRIVE_KINDS`)."""
-    try:
-        where = DRIVE_KINDS[name]
-    except KeyError:
-        raise ValueError(
-            f"unknown drive kind {name!r} (known: {', '.join(sorted(DRIVE_KINDS))})"
-        ) from None
-    module, attribute = where.split(":")
-    return getattr(importlib.import_module(module), attribute)
+    return load_kind(DRIVE_KINDS, name, "drive kind")
 
 
 def drive_config(document: dict[str, Any], source: str) -> DriveSettings:

@@ -119,6 +119,42 @@ class GloveUnit(Protocol):
 
 
 @runtime_checkable
+class GripSource(GloveUnit, Protocol):
+    """A rig's grip force of any kind (:mod:`hardware.grips`: Steerlab's glove unit, an LSL
+    stream, a text-line device), as the live path uses it. A reader thread of its own keeps
+    ``latest()`` current; :class:`hardware.grip.reader.GripReader` implements the rest."""
+
+    def describe(self) -> str:
+        """The device in words, for messages ("LSL stream 'GripGlove'")."""
+        ...
+
+    def age_s(self) -> float | None:
+        """Host seconds since the newest reading arrived; None before the first."""
+        ...
+
+    def stream_alive(self, timeout_s: float = 0.1) -> bool: ...
+
+    @property
+    def error(self) -> BaseException | None:
+        """What stopped the reader, or None."""
+        ...
+
+    def check(self) -> None:
+        """Raise if the reader failed (the message names the device)."""
+
+    def problem(self, timeout_s: float) -> str | None:
+        """A reason to stop the trial now (the reader failed, or no reading for longer than
+        ``timeout_s``), naming the device and what went wrong; None while all is well."""
+        ...
+
+    def stats(self) -> Any:
+        """The source's counters: a dataclass with ``as_dict()`` and at least ``rate_hz``."""
+        ...
+
+    def close(self) -> None: ...
+
+
+@runtime_checkable
 class Display(Protocol):
     """The subject's dashboard."""
 

@@ -1,12 +1,14 @@
 """The live path: a rig's devices, and the 1 kHz control loop in a process of its own.
 
-:class:`RigDevices` opens what a rig file names: the CiA 402 drive on its CAN bus and the glove
-unit on its serial port. For the simulated rig, the same drivers talk to a simulated drive node
-(hosting the simulated world) and to a pseudo-terminal fed by the simulated glove unit: every
-byte and frame is the lab's. :class:`ProcessLoop` runs those simulated devices in a process of
-their own (``hardware.sim.lab``, over the ``udp_loopback`` bus), so that the loop's process holds
-only what it holds in the lab; ``RigDevices`` built directly on a simulated rig file hosts them
-in its own process (python-can's virtual bus), for tests.
+:class:`RigDevices` opens what a rig file names: the drive of its kind on its CAN bus and the
+grip source of its kind (the glove unit on its serial port, an LSL stream, a text-line device).
+For the simulated rig, the same drivers talk to a simulated drive node (hosting the simulated
+world) and to a simulated grip device of the same kind (a pseudo-terminal fed by the simulated
+glove unit, an LSL outlet, ...): every byte and frame is the lab's. :class:`ProcessLoop` runs
+those simulated devices in a process of their own (``hardware.sim.lab``, over the
+``udp_loopback`` bus), so that the loop's process holds only what it holds in the lab;
+``RigDevices`` built directly on a simulated rig file hosts them in its own process
+(python-can's virtual bus), for tests.
 
 :class:`ProcessLoop` is the engine's :class:`protocols.engine.TrialLoop` for a real-time rig. The
 control loop runs in a separate process, so the session file writer and the GUI, which run in
@@ -31,13 +33,13 @@ from typing import TYPE_CHECKING
 
 import can
 import numpy as np
-import serial
 
 from steerlab.hardware.can.errors import DriveError
 from steerlab.hardware.drives import drive_kind, on_bus
-from steerlab.hardware.glove.unit import SerialGloveUnit
-from steerlab.hardware.interfaces import ColumnTorque, RigDrive
-from steerlab.hardware.loop import DEFAULT_BLOCK_S, LOOP_CHANNELS, SPIN_S, DeviceLoop
+from steerlab.hardware.grip.reader import GripSourceError
+from steerlab.hardware.grips import grip_kind
+from steerlab.hardware.interfaces import ColumnTorque, GripSource, RigDrive
+from steerlab.hardware.loop import BLOCK_CHANNELS, DEFAULT_BLOCK_S, SPIN_S, DeviceLoop
 from steerlab.hardware.messages import Outbox, WriterGone, message_pipe
 from steerlab.hardware.rig import RigConfig, load_rig
 from steerlab.protocols.engine import LoopControl, TrialFault
@@ -66,7 +68,7 @@ class RigDevices:
 
     # Set once opened: a RigDevices that exists has both (close() also sees a partial one).
     drive: RigDrive
-    glove: SerialGloveUnit
+    glove: GripSource  # of the rig's [glove] kind (hardware.grips)
 
     def __init__(self, rig: RigConfig, *, subject_number: int = 1, lab=None) -> None:
         self.rig = rig
@@ -75,8 +77,9 @@ class RigDevices:
         self.physiology: dict | None = None
         self.hands_off = False  # the current trial is a rig check's: no gloves needed
         drive_cfg = rig.drive
+        glove_cfg = rig.glove
+        grips = grip_kind(glove_cfg.kind)
         try:
-            port = rig.glove.port
             if rig.simulated:
                 from steerlab.hardware.sim.devices import simulated_devices
 
@@ -94,16 +97,16 @@ class RigDevices:
                     drive_config=drive_cfg,
                 )
                 self.physiology = self.simulated.physiology
-                port = self.simulated.glove.port
+                glove_cfg = grips.at(glove_cfg, self.simulated.glove.address)
             if lab is not None:
                 self.physiology = lab.call("physiology")
             self.drive_config = drive_cfg
+            self.glove_config = glove_cfg
             self.drive = drive_kind(drive_cfg.kind).open(drive_cfg)
             try:
-                ser = serial.Serial(port, rig.glove.baudrate, timeout=0.05)
-            except (serial.SerialException, OSError) as e:
-                raise RigError(f"glove unit: cannot open serial port {port!r}: {e}") from None
-            self.glove = SerialGloveUnit(ser, rig.glove.calibration).start()
+                self.glove = grips.open(glove_cfg)
+            except GripSourceError as e:  # it names the device and what is wrong
+                raise RigError(str(e)) from None
         except BaseException:
             self.close()
             raise
@@ -120,7 +123,8 @@ class RigDevices:
 
     @property
     def glove_sim(self):
-        """The simulated glove unit of a simulated rig (None for a lab's devices)."""
+        """The simulated grip device of a simulated rig, of its [glove] kind (None for a lab's
+        devices)."""
         return self.simulated.glove if self.simulated is not None else None
 
     @property
@@ -174,16 +178,9 @@ class RigDevices:
         problem = self.drive.problem()
         if problem is not None or self.hands_off:
             return problem
-        g = self.glove
-        if g.error is not None:
-            return f"glove unit failed: {g.error}"
-        age = g.age_s()
-        if age is None or age > self.rig.safety.glove_timeout_s:
-            crc = g.stats().crc_errors
-            damaged = f" ({crc} frames with a bad CRC so far)" if crc else ""
-            since = "ever" if age is None else f"{age:.2f} s"
-            return f"glove stream stopped: no valid frame for {since}{damaged}"
-        return None
+        # The grip source of any kind: its reader failed, or its stream stopped (naming the
+        # device, and what it saw go wrong on the line: bad CRCs, malformed lines).
+        return self.glove.problem(self.rig.safety.glove_timeout_s)
 
     def status(self) -> dict:
         d, g = getattr(self, "drive", None), getattr(self, "glove", None)
@@ -195,9 +192,14 @@ class RigDevices:
         )
         return {
             **drive,
+            "glove_source": g.describe() if g else None,
             "glove_rate_hz": st.get("rate_hz"),
+            # Each only for the kinds that have them (None otherwise): the glove unit's CRCs
+            # and sequence gaps, a text-line device's malformed lines, an LSL stream's
+            # non-numeric samples.
             "glove_crc_errors": st.get("crc_errors"),
             "glove_dropped_frames": st.get("dropped_frames"),
+            "glove_bad_samples": st.get("bad_lines", st.get("bad_samples")),
             "glove_age_s": g.age_s() if g else None,
         }
 
@@ -279,14 +281,14 @@ class SampleRing:
     queue's buffer) can still reach the file."""
 
     def __init__(self, ctx) -> None:
-        n = len(LOOP_CHANNELS)
+        n = len(BLOCK_CHANNELS)
         self.data = ctx.RawArray("d", RING_SAMPLES * n)
         self.count = ctx.RawValue("q", 0)  # samples of this trial written
 
     def sink(self):
         ring = np.frombuffer(self.data, dtype=float).reshape(RING_SAMPLES, -1)
         count = self.count
-        channels = LOOP_CHANNELS
+        channels = BLOCK_CHANNELS
 
         def put(index: int, buf: dict, row: int) -> None:
             r = ring[index % RING_SAMPLES]
@@ -303,7 +305,7 @@ class SampleRing:
             return None
         ring = np.frombuffer(self.data, dtype=float).reshape(RING_SAMPLES, -1)
         rows = ring[np.arange(first, last) % RING_SAMPLES]
-        return {name: rows[:, c].copy() for c, name in enumerate(LOOP_CHANNELS)}
+        return {name: rows[:, c].copy() for c, name in enumerate(BLOCK_CHANNELS)}
 
 
 def _terminated(signum, frame) -> None:
@@ -472,11 +474,13 @@ class ProcessLoop:
                     self.lab = LabProcess(rig_path, subject=subject_number)
                 except Exception as e:
                     raise RigError(f"the simulated devices did not come up: {e}") from e
-                # The host sees a lab: the drive on the lab's bus, the glove on its pty.
+                # The host sees a lab: the drive on the lab's bus, the grip where the lab says
+                # (the glove unit's pty, an LSL stream's source id).
+                grips = grip_kind(loaded.glove.kind)
                 rig = replace(
                     loaded,
                     drive=on_bus(loaded.drive, UDP_LOOPBACK, self.lab.channel),
-                    glove=replace(loaded.glove, port=self.lab.pty),
+                    glove=grips.at(loaded.glove, self.lab.grip),
                     simulation=None,
                 )
                 lab_control = (self.lab.control_address, self.lab.authkey)

@@ -3,7 +3,9 @@
 Per cycle: check the rig's health and the emergency stop, read the drive (angle, velocity) and
 the torque sensor, take the newest glove reading, compute the motor command (virtual wheel +
 perturbation within the safety limits, :func:`hardware.safety.loop_command`), command the drive,
-end the cycle (SYNC). Samples go out in blocks for the engine.
+end the cycle (SYNC). Samples go out in blocks for the engine, each with the host's
+``time.monotonic()`` at its read (``host_time_s``: the lab clock's stamp, however late the block
+reaches the engine).
 
 Whatever ends the trial (the end, an abort, a fault, an exception, the generator being closed),
 the finalizer leaves the motor at zero torque and disabled.
@@ -61,6 +63,13 @@ LOOP_CHANNELS = (
     "grip_force_left_N",
     "grip_force_right_N",
 )
+#: Per sample, the host's ``time.monotonic()`` at the cycle's read of the sensors: what puts
+#: each sample on the lab's clock (``protocols.lsl_publisher.LabClock``) however late its block
+#: reaches the engine. Beside the measured channels: a batch simulation has no such instant,
+#: and gives the time it computed the sample (``hardware.sim.rig.BatchLoop``).
+HOST_TIME_CHANNEL = "host_time_s"
+#: What every block of a trial loop carries (at least).
+BLOCK_CHANNELS = (*LOOP_CHANNELS, HOST_TIME_CHANNEL)
 PAUSE_FADE_S = 0.5
 SPIN_S = 0.25e-3
 LATE_S = 0.5e-3  # a cycle later than this counts as late
@@ -237,7 +246,7 @@ class DeviceLoop:
             k = 0
             while k < n_total:
                 m = min(blk, n_total - k)
-                buf = {c: np.empty(m) for c in LOOP_CHANNELS}
+                buf = {c: np.empty(m) for c in BLOCK_CHANNELS}
                 if vehicle is not None:
                     # One copy per cycle into a 2-D block; the channels are its rows (views).
                     drv = np.empty((len(DRIVING_CHANNELS), m))
@@ -273,6 +282,8 @@ class DeviceLoop:
                             problem = self.health()
                             if problem is not None:
                                 raise TrialFault(problem)
+                        # The instant the sample is of: just before its sensors are read.
+                        read_at = time.monotonic()
                         r = self.drive.read()
                         td = self.sensor.read()
                         g = self.glove.latest()
@@ -315,6 +326,7 @@ class DeviceLoop:
                         if trace is not None:
                             trace[k + j, 3] = self.clock() - due if self.realtime else 0.0
                         buf["time_s"][j] = (k + j) / fs
+                        buf[HOST_TIME_CHANNEL][j] = read_at
                         buf["perturbation_torque_Nm"][j] = tp
                         buf["driver_torque_Nm"][j] = td
                         buf["wheel_angle_rad"][j] = r.angle_rad

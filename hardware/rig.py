@@ -1,4 +1,4 @@
-"""A rig file: the drive, the glove unit, the safety limits and, for the simulated rig, who sits
+"""A rig file: the drive, the grip source, the safety limits and, for the simulated rig, who sits
 at the wheel. ``docs/rig-config.md`` documents every field; ``hardware/rigs/simulated.toml`` is
 the example.
 
@@ -16,11 +16,12 @@ from typing import Any
 
 from steerlab.hardware.can.config import ConfigError
 from steerlab.hardware.drives import DriveSettings, drive_config
-from steerlab.hardware.glove.calibration import CalibrationError, GloveCalibration
+from steerlab.hardware.grip.steerlab_kind import GloveConfig as GloveConfig  # (re-exported)
+from steerlab.hardware.grips import SIMULATED_PORT as SIMULATED_PORT
+from steerlab.hardware.grips import GripSettings, grip_config
 from steerlab.hardware.safety import SafetyLimits
 
 SIMULATED_RIG = "simulated.toml"
-SIMULATED_PORT = "simulated"
 KNOWN_TABLES = {"drive", "safety", "glove", "simulation", "rig_check"}
 #: [simulation] fields: who holds the wheel, and the simulated wheel's own physics.
 SIMULATION_FIELDS = (
@@ -42,17 +43,6 @@ RIG_CHECK_DEFAULTS = {
     "delay_max_s": 0.010,
     "vaf_min_percent": 95.0,
 }
-
-
-@dataclass(frozen=True)
-class GloveConfig:
-    port: str
-    baudrate: int
-    calibration: GloveCalibration
-
-    @property
-    def simulated(self) -> bool:
-        return self.port == SIMULATED_PORT
 
 
 @dataclass(frozen=True)
@@ -90,7 +80,9 @@ class SimulationConfig:
 class RigConfig:
     source: str
     drive: DriveSettings  # of the kind [drive] kind names (hardware.drives)
-    glove: GloveConfig
+    #: the grip source, of the kind [glove] kind names (hardware.grips): a GloveConfig for
+    #: Steerlab's own glove unit (the default)
+    glove: GripSettings
     safety: SafetyLimits
     simulation: SimulationConfig | None
     rig_check: dict | None = None  # [rig_check] as given (keys of RIG_CHECK_DEFAULTS)
@@ -107,7 +99,7 @@ class RigConfig:
         return {
             "source": self.source,
             **self.drive.describe(),
-            "glove_port": self.glove.port,
+            **self.glove.describe(),
             "loop_rate_hz": self.loop_rate_hz,
             "safety": asdict(self.safety),
             "simulated": self.simulated,
@@ -147,26 +139,7 @@ def load_rig(path: str | Path | None = None) -> RigConfig:
     for field, problem in safety.problems():
         raise ConfigError(src, "safety", field, problem)
 
-    g = data.get("glove")
-    if not isinstance(g, dict):
-        raise ConfigError(src, "glove", None, "required table is missing")
-    for key in g:
-        if key not in ("port", "baudrate", "calibration"):
-            raise ConfigError(
-                src, "glove", key, "unknown field (known: baudrate, calibration, port)"
-            )
-    if not isinstance(g.get("port"), str) or not g["port"]:
-        raise ConfigError(src, "glove", "port", 'required: a serial device path or "simulated"')
-    baud = g.get("baudrate", 115200)
-    if isinstance(baud, bool) or not isinstance(baud, int) or baud <= 0:
-        raise ConfigError(
-            src, "glove", "baudrate", f"must be a positive whole number, got {baud!r}"
-        )
-    try:
-        cal = GloveCalibration.from_config(g.get("calibration"))
-    except CalibrationError as e:
-        raise ConfigError(src, "glove.calibration", None, str(e)) from None
-    glove = GloveConfig(g["port"], baud, cal)
+    glove = grip_config(data, src)
 
     sim = None
     if "simulation" in data:

@@ -15,7 +15,8 @@ The ways, and who uses them:
   (tests of what the GUI runs).
 - :func:`simulated_loop` with ``pace="batch"``: the built-in simulated rig, whole blocks inside
   the compiled world, as fast as it computes (``steerlab simulate``). Same samples as "paced" for
-  the same seed.
+  the same seed, and the same channels but ``host_time_s`` (a block computed at once has no
+  instant of a read).
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
@@ -99,7 +99,7 @@ def software_version() -> str:
         return "0+unknown"
 
 
-def _now() -> str:
+def now_utc() -> str:
     return datetime.now(UTC).isoformat(timespec="seconds")
 
 
@@ -128,7 +128,7 @@ def native_attr(v: object) -> object:
     return v
 
 
-def _set_attrs(obj, attrs: dict) -> None:
+def set_attrs(obj, attrs: dict) -> None:
     for k, v in attrs.items():
         if v is None:
             continue
@@ -202,7 +202,8 @@ def session_bytes(
     for spec in plan.trials:
         setup = plan.setup(spec, 1)
         n_channels = trial_channels(setup) if channels is None else channels
-        per_sample = 8 + (n_channels - 1) * dtype_bytes  # time_s f8, the rest dtype
+        # time_s and host_time_s f8, the rest dtype
+        per_sample = 16 + max(0, n_channels - 2) * dtype_bytes
         chunks = -(-setup.n_samples // chunk_samples)
         total += chunks * chunk_samples * per_sample + 64 * 1024
     return total
@@ -309,6 +310,11 @@ class SessionWriter:
     with a ``scale_factor`` attribute when its first block is exactly counts × quantum; if a
     later block is not, the channel is rewritten as float64 (nothing is rounded).
 
+    ``first_sample_attributes``: called with each trial's first block of samples; what it
+    returns is written as attributes of the trial (the LSL clock at the trial's first sample,
+    :meth:`protocols.lsl_publisher.LabClock.first_sample_attributes`). A failure there is
+    logged and the trial goes on without them.
+
     ``lock``: True takes the lock now and holds it to the end of the session (or :meth:`close`);
     a held :class:`WriterLock` is used and left to the caller to release (``run``, the GUI, which
     hold it across several runs of the engine); False means the caller holds it for this file in
@@ -326,8 +332,10 @@ class SessionWriter:
         clock=time.monotonic,
         lock: WriterLock | bool = True,
         quanta: dict[str, float] | None = None,
+        first_sample_attributes: Callable[[ev.SamplesAcquired], dict] | None = None,
     ) -> None:
         self.path = Path(path)
+        self.first_sample_attributes = first_sample_attributes
         # channel → the value of one count of the sensor behind it (e.g. the encoder's rad per
         # count): such a channel is stored as int32 counts with a scale_factor, when exact.
         self.quanta = {k: float(q) for k, q in (quanta or {}).items() if q and q > 0}
@@ -374,7 +382,7 @@ class SessionWriter:
                 # A writer died with the file open (we hold the lock: it is not alive).
                 self.recovered_flags = _clear_crash_flags(self.path)
                 self.f = h5py.File(self.path, "a", libver=LIBVER, locking=False)
-                self.f.attrs["recovered_utc"] = _now()
+                self.f.attrs["recovered_utc"] = now_utc()
             st = os.stat(self.path)
             self._identity = (st.st_dev, st.st_ino)
         return self.f
@@ -497,13 +505,13 @@ class SessionWriter:
                     except Exception as e:
                         log.error("%s: buffered samples not written: %r", self.path, e)
                 g = self._reopen_plain()["trials"][key]
-                _set_attrs(
+                set_attrs(
                     g,
                     {
                         "status": STATUS_ABORTED,
                         "abort_reason": f"session writer failed: {self.failure}",
                         "n_samples": self._written,
-                        "ended_utc": _now(),
+                        "ended_utc": now_utc(),
                     },
                 )
                 self._file().flush()
@@ -622,7 +630,7 @@ class SessionWriter:
             "format": FORMAT,
             "format_version": FORMAT_VERSION,
             "software_version": software_version(),
-            "created_utc": _now(),
+            "created_utc": now_utc(),
             **e.attributes,
             "protocol_toml": e.protocol_text,
             "perturbation_design": e.design_json,
@@ -638,7 +646,7 @@ class SessionWriter:
             tmp = creating_path(self.path)
             tmp.unlink(missing_ok=True)
             with h5py.File(tmp, "w", libver=LIBVER) as f:
-                _set_attrs(f, self._session_attributes(e))
+                set_attrs(f, self._session_attributes(e))
                 f.create_group("trials")
             with open(tmp, "rb+") as fh:
                 os.fsync(fh.fileno())
@@ -646,7 +654,7 @@ class SessionWriter:
             return
         f = self._open()
         if f.attrs.get("format") is None:
-            _set_attrs(f, self._session_attributes(e))
+            set_attrs(f, self._session_attributes(e))
         else:
             if str(f.attrs.get("subject")) != e.subject:
                 raise DataFileError(
@@ -657,7 +665,7 @@ class SessionWriter:
                     f"{self.path}: was recorded with a different protocol; resume with the same "
                     "protocol file, or start a new session file"
                 )
-            f.attrs["resumed_utc"] = _now()
+            f.attrs["resumed_utc"] = now_utc()
         f.require_group("trials")
         self._close_file()
 
@@ -670,13 +678,13 @@ class SessionWriter:
             )
         g = trials.create_group(e.key)
         design = f.attrs.get("perturbation_design")
-        _set_attrs(
+        set_attrs(
             g,
             {
                 **e.attributes,
                 "status": STATUS_INCOMPLETE,
                 "n_planned": e.n_planned,
-                "started_utc": _now(),
+                "started_utc": now_utc(),
                 "perturbation_design": design,
                 "units": UNITS,
                 "sign_conventions": SIGN_CONVENTIONS,
@@ -733,6 +741,7 @@ class SessionWriter:
             # on the pace at which the samples come, counted from the first.
             self._buf = {k: [] for k in e.channels}
             self._last_flush = self.clock()
+            self._stamp_first_sample(e)
         if e.channels.keys() != self._buf.keys():
             raise DataFileError(f"{self.path}: trial {e.key}: channels changed within the trial")
         for k, v in e.channels.items():
@@ -746,6 +755,19 @@ class SessionWriter:
             self._last_flush = now
         elif self._buffered >= self.chunk_samples:
             self._append(whole_chunks=True)
+
+    def _stamp_first_sample(self, e: ev.SamplesAcquired) -> None:
+        """The trial's attributes known at its first sample (the file is not yet in SWMR mode:
+        its datasets are made at the first write)."""
+        if self.first_sample_attributes is None:
+            return
+        try:
+            attrs = self.first_sample_attributes(e)
+        except Exception as x:  # a clock's failure must not cost the trial
+            log.warning("%s: trial %s: first-sample attributes: %r", self.path, e.key, x)
+            return
+        if attrs:
+            set_attrs(self._file()["trials"][self._key], attrs)
 
     def _write_out(self) -> None:
         """Append everything buffered."""
@@ -850,13 +872,13 @@ class SessionWriter:
         self._file().flush()
         f = self._reopen_plain()
         g = f["trials"][self._key]
-        _set_attrs(
+        set_attrs(
             g,
             {
                 "status": e.status,
                 "abort_reason": e.reason or "",
                 "n_samples": e.n_samples,
-                "ended_utc": _now(),
+                "ended_utc": now_utc(),
                 "loop_stats": e.stats,
             },
         )
@@ -872,7 +894,7 @@ class SessionWriter:
             raise DataFileError(f"{self.path}: no trial {e.key!r} to mark superseded")
         g.attrs["status"] = STATUS_SUPERSEDED
         g.attrs["superseded_reason"] = e.reason
-        g.attrs["superseded_utc"] = _now()
+        g.attrs["superseded_utc"] = now_utc()
         if self._key is None:
             self._close_file()
         else:
@@ -896,7 +918,7 @@ def _clear_crash_flags(path: Path) -> int:
 OPEN_RETRY_S = 3.0  # how long a reader waits for a live writer between its set-up steps
 
 
-def _open_for_reading(path: Path) -> h5py.File:
+def open_for_reading(path: Path) -> h5py.File:
     """Open a session file read-only, whatever state a writer left it in.
 
     A file with a live writer (its lock is held) is opened in SWMR mode; any other file in
@@ -994,7 +1016,7 @@ class SessionFile:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.damaged: dict[str, str] = {}
-        with _damage_is_an_error(self.path), _open_for_reading(self.path) as f:
+        with _damage_is_an_error(self.path), open_for_reading(self.path) as f:
             if _attr(f, "format") != FORMAT:
                 raise DataFileError(
                     f"{self.path}: not a Steerlab session file (no format={FORMAT!r})"
@@ -1040,7 +1062,7 @@ class SessionFile:
         channels and ``abort_reason`` saying what is damaged.
         """
         out = []
-        with _damage_is_an_error(self.path), _open_for_reading(self.path) as f:
+        with _damage_is_an_error(self.path), open_for_reading(self.path) as f:
             for key in self.trial_keys:
                 attrs = self.trial_attrs[key]
                 if key not in self.damaged:

@@ -41,11 +41,11 @@ from steerlab.protocols.datafile import (
     SIGN_CONVENTIONS,
     UNITS,
     SessionFile,
-    _now,
-    _open_for_reading,
-    _set_attrs,
     create_channel,
+    now_utc,
+    open_for_reading,
     session_files,
+    set_attrs,
     software_version,
 )
 from steerlab.protocols.names import UnsafeNameError, check_name, inside
@@ -115,7 +115,7 @@ def export_study(
         for path in files:
             sf = SessionFile(path)
             recs = sf.records()
-            with _open_for_reading(path) as f:
+            with open_for_reading(path) as f:
                 for rec in recs:
                     if rec.status == STATUS_DAMAGED:
                         skipped.append(f"{rec.source}: {rec.abort_reason}")
@@ -522,6 +522,9 @@ def _read_csv(path: Path, fs_hz: float, dtypes: dict[str, str]) -> dict[str, np.
     if dup:
         raise InterchangeError(f"{path}: row 1 (header): duplicate column(s) {dup[:20]}")
     arr = _fast_parse(text, len(header))
+    # An extra column may say "nothing here" with NaN (a channel imported from another
+    # recording that does not cover the whole trial); the core channels are measured throughout.
+    may_be_nan = [h not in CORE_CHANNELS for h in header]
     rows: list[list[float]] = []
     try:
         for i, row in enumerate(reader if arr is None else (), start=2):
@@ -539,7 +542,7 @@ def _read_csv(path: Path, fs_hz: float, dtypes: dict[str, str]) -> dict[str, np.
                     raise InterchangeError(
                         f"{path}: row {i}, column {header[j]!r}: not a number: {cell[:40]!r}"
                     ) from None
-                if not math.isfinite(v):
+                if not math.isfinite(v) and not (math.isnan(v) and may_be_nan[j]):
                     raise InterchangeError(
                         f"{path}: row {i}, column {header[j]!r}: {cell[:40]!r} is not finite"
                     )
@@ -757,17 +760,17 @@ def write_records(
                 )
             session_attrs[k] = v
     with h5py.File(path, "w", libver=LIBVER) as f:
-        _set_attrs(
+        set_attrs(
             f,
             {
                 "software_version": software_version(),
-                "created_utc": _now(),
+                "created_utc": now_utc(),
                 **{k: v for k, v in session_attrs.items() if k not in _SESSION_OWN},
                 "format": FORMAT,
                 "format_version": FORMAT_VERSION,
                 "subject": subject,
                 "imported_from": source,
-                "imported_utc": _now(),
+                "imported_utc": now_utc(),
                 "units": UNITS,
                 "sign_conventions": SIGN_CONVENTIONS,
             },
@@ -815,7 +818,7 @@ def write_records(
                 )
             elif isinstance(dj, dict):
                 attrs["perturbation_design"] = json.dumps(dj)
-            _set_attrs(g, attrs)
+            set_attrs(g, attrs)
             for c in CORE_CHANNELS:
                 create_channel(g, c, data=np.asarray(getattr(r, c), dtype=r.dtypes.get(c, "f8")))
             for c, v in r.extra.items():

@@ -17,6 +17,13 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+# Before anything imports pylsl: every LSL packet of the tests (and of the processes they
+# start, which inherit it) stays on this machine's loopback (docs/lsl.md;
+# tests/lsl/test_lsl_loopback.py checks it is in force).
+from steerlab.benchmarks._lsl_loopback import keep_lsl_on_loopback  # noqa: E402
+
+keep_lsl_on_loopback()
+
 from steerlab.hardware.realtime import REALTIME_ENV  # noqa: E402
 from steerlab.protocols.protocol import load_protocol, parse_protocol  # noqa: E402
 from tests.helpers import fast_protocol_text, lenient_rig_text  # noqa: E402

@@ -87,3 +87,38 @@ def cli(*args) -> tuple[int, str]:
         except SystemExit as e:  # argparse's refusals
             code = int(e.code or 0)
     return code, err.getvalue()
+
+
+def wait_for(condition, timeout_s: float = 5.0) -> None:
+    """Poll ``condition()`` until it is true; AssertionError after ``timeout_s`` (generous: a
+    loaded machine is slow, and a test that passes does not wait it out)."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        time.sleep(0.005)
+
+
+def assert_no_threads(prefix: str) -> None:
+    """No thread whose name starts with ``prefix`` is still running (a source or simulator
+    that a test closed must have stopped its thread)."""
+    import threading
+
+    leftovers = [t.name for t in threading.enumerate() if t.name.startswith(prefix)]
+    assert not leftovers, f"threads still running: {leftovers}"
+
+
+def closing_factory(make, close=lambda made: made.close()):
+    """For a fixture to ``yield from``: a function that calls ``make`` and keeps what it made,
+    each closed (``close``) once the test is over."""
+    made: list = []
+
+    def factory(*args, **kwargs):
+        made.append(make(*args, **kwargs))
+        return made[-1]
+
+    yield factory
+    for each in made:
+        close(each)

@@ -494,9 +494,7 @@ def _rig_from_data_section(result) -> str:
             fixed = "none" if p == "lag_s" else f"{_n(v, 4)} (rig's)"
             cells.append(f"{_n(v, 4)} ± {_n(e, 1)}" if e else fixed)
         rows.append(
-            [_e(f"{rendering}, {label}")]
-            + cells
-            + [_n(f["m2ll"], 5), _n(f["noise_ratio"], 3)]
+            [_e(f"{rendering}, {label}")] + cells + [_n(f["m2ll"], 5), _n(f["noise_ratio"], 3)]
         )
     header = ["damping and spring"] + [f"{a} ({u})" for a, u in _PARAM_LABELS.values()]
     header += ["−2 log L", "residual / noise"]

@@ -1,7 +1,8 @@
 """What the experimenter's buttons do, without Qt: sessions, the engine's worker thread, safety.
 
 Threads: the engine runs in one worker thread (``steerlab-engine``), started by :meth:`start`.
-Its subscribers (the session writer first, then the GUI's bridge) are called on that thread.
+Its subscribers (the LSL clock or publisher, the session writer, then the GUI's bridge) are
+called on that thread.
 Every method here is called from the GUI thread. They only post requests to the engine
 (``pause``/``resume``/``abort``), except :meth:`emergency_stop`, which calls the engine's
 ``emergency_stop()`` directly: it goes straight to the loop's drive, whatever the engine thread
@@ -9,6 +10,10 @@ is doing.
 
 One trial at a time: the engine is built with ``pause_between_trials=True``, so after each trial
 it waits (state ``paused``, no trial current) until :meth:`start` resumes it.
+
+On the lab's clock: the session is published on LSL (before the writer and the GUI's own
+subscribers) unless ``lsl`` is False or ``STEERLAB_LSL=off``; the trials record the LSL clock
+at their first sample either way (:mod:`protocols.lsl_publisher`, ``docs/lsl.md``).
 """
 
 from __future__ import annotations
@@ -22,6 +27,14 @@ from steerlab.app.gui.rig import RigHandle, make_rig_loop
 from steerlab.protocols import events as ev
 from steerlab.protocols.datafile import DataFileError, SessionFile, SessionWriter, session_files
 from steerlab.protocols.engine import IllegalTransition, SessionEngine, State
+from steerlab.protocols.lsl_publisher import (
+    LabClock,
+    LslPublisher,
+    close_lab_subscriber,
+    lab_clock_for,
+    lab_subscriber,
+    publish_default,
+)
 from steerlab.protocols.names import UnsafeNameError, check_name, inside
 from steerlab.protocols.protocol import Protocol
 from steerlab.protocols.session import SessionPlan, TrialSpec, build_plan, subject_id
@@ -104,9 +117,11 @@ class SessionController:
         rig_path: str | None = None,
         rig_factory: RigFactory | None = None,
         subscribers: tuple[Callable[[object], None], ...] = (),
+        lsl: bool | None = None,
     ) -> None:
         """``subscribers`` get the engine's events (on the engine thread) and this
-        controller's :class:`WorkerFinished` (on the worker thread)."""
+        controller's :class:`WorkerFinished` (on the worker thread). ``lsl``: publish the
+        session on LSL (None: yes, unless ``STEERLAB_LSL=off``)."""
         self.protocol = protocol
         self.data_root = Path(data_root)
         self.rig_path = rig_path
@@ -114,6 +129,8 @@ class SessionController:
             lambda path, subject, protocol: make_rig_loop(path, subject, protocol)
         )
         self.subscribers = tuple(subscribers)
+        self.lsl = publish_default(True, strict=False) if lsl is None else bool(lsl)
+        self.lab: LabClock | LslPublisher | None = None  # the LSL clock, or its publisher
         self.plan: SessionPlan | None = None
         self.engine: SessionEngine | None = None
         self.rig: RigHandle | None = None
@@ -209,14 +226,30 @@ class SessionController:
         engine = SessionEngine(plan, rig.loop, attempts=attempts, pause_between_trials=True)
         path.parent.mkdir(parents=True, exist_ok=True)
         extra = dict(rig.extra_attributes) | ({"hands_off_check": True} if hands_off else {})
-        writer = SessionWriter(path, extra_attributes=extra, lock=lock)
+        clock = lab_clock_for(rig.loop)
+        writer = SessionWriter(
+            path,
+            extra_attributes=extra,
+            lock=lock,
+            first_sample_attributes=clock.first_sample_attributes,
+        )
         self._lock = lock
+        self.lab = lab_subscriber(
+            clock,
+            self.lsl,
+            rig=rig.name,
+            session_path=path,
+            nominal_rate_hz=self.protocol.loop_rate_hz,
+        )
+        # First the LSL clock (it reads each block's arrival before anyone's work on it; it
+        # takes microseconds and never raises), then the file, before anything is displayed.
+        engine.subscribe(self.lab)
         if hands_off:
             from steerlab.app.rigcheck import mark_hands_off
 
             engine.subscribe(mark_hands_off(writer))
         else:
-            engine.subscribe(writer)  # first: the file is written before anything is displayed
+            engine.subscribe(writer)
         for s in self.subscribers:
             engine.subscribe(s)
         self.plan, self.rig, self.engine, self.writer, self.path = plan, rig, engine, writer, path
@@ -380,6 +413,7 @@ class SessionController:
             )
         if self.writer is not None:
             self.writer.close()
+        close_lab_subscriber(self.lab)
         if self._lock is not None:
             self._lock.release()
             self._lock = None

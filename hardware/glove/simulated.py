@@ -15,19 +15,15 @@ lost (``stats().overflows``) and the receiver sees a sequence gap.
 
 from __future__ import annotations
 
-import errno
-import fcntl
 import logging
-import os
 import random
-import threading
 import time
-import tty
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 from steerlab.hardware.glove import protocol as p
 from steerlab.hardware.glove.calibration import GloveCalibration
+from steerlab.hardware.grip.pty import PtyStreamer
 
 log = logging.getLogger(__name__)
 
@@ -39,9 +35,6 @@ MapSource = Callable[[float], tuple[Sequence[int] | bytes, Sequence[int] | bytes
 
 # Room for one whole frame beyond what the pty took, so frames are delayed, never torn.
 _TX_LIMIT = 2 * p.MAX_FRAME_LEN
-# Behind schedule by more than this (process suspended), the device "keeps sampling" but those
-# frames are lost, rather than arriving as one huge burst.
-_MAX_LAG_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -74,8 +67,13 @@ class SimulatedGloveStats:
     faults_injected: int = 0  # corrupted, bad CRC, garbage, out-of-range
 
 
-class SimulatedGloveUnit:
+class SimulatedGloveUnit(PtyStreamer):
     """Writes glove frames into a pty at ``rate_hz``; open ``port`` with serial.Serial."""
+
+    thread_name = "glove-sim"
+    sim_name = "glove simulator"
+    #: fault names :meth:`inject` knows (a simulated lab's glove faults)
+    faults = ("glove_hang_up", "glove_stop", "crc_storm")
 
     def __init__(
         self,
@@ -94,94 +92,39 @@ class SimulatedGloveUnit:
     ) -> None:
         if not rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
+        self._period_us = round(1e6 / rate_hz)
+        # A device crystal fast by `ppm` puts its fixed-period frames closer together in host time.
+        super().__init__(
+            host_period_s=self._period_us * 1e-6 / (1.0 + clock_drift_ppm * 1e-6),
+            tx_limit=_TX_LIMIT,
+            clock=clock,
+            on_error=on_error,
+        )
         self._source = source
         self._calibration = calibration
         self._pressure_map = pressure_map
         self._faults = faults or GloveFaults()
         self._rng = random.Random(seed)
-        self._clock = clock
-        self._on_error = on_error
-        self._period_us = round(1e6 / rate_hz)
-        # A device crystal fast by `ppm` puts its fixed-period frames closer together in host time.
-        self._host_period_s = self._period_us * 1e-6 / (1.0 + clock_drift_ppm * 1e-6)
         self._sequence = start_sequence
         self._device_us = start_time_us
-
-        self._lock = threading.Lock()
         self._one_shot = {"corrupt": 0, "crc_error": 0, "drop": 0, "out_of_range": 0}
         self._garbage: bytearray = bytearray()
-        self._streaming = True
-        self._hangup = threading.Event()
-        self._hung_up = threading.Event()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._tx = bytearray()
-        self._error: BaseException | None = None
         self._stats = SimulatedGloveStats()
-
-        self._master, self._slave = os.openpty()
-        try:
-            # Raw from the start: bytes written before the reader configures the port must not
-            # be echoed, turned into signals, or taken as XON/XOFF by the line discipline.
-            tty.setraw(self._slave)
-            flags = fcntl.fcntl(self._master, fcntl.F_GETFL)
-            fcntl.fcntl(self._master, fcntl.F_SETFL, flags | os.O_NONBLOCK)
-            self._port = os.ttyname(self._slave)
-        except BaseException:
-            os.close(self._master)
-            os.close(self._slave)
-            raise
-        self._master_open = True
-        self._closed = False
-
-    @property
-    def port(self) -> str:
-        """Device path of the pty slave, e.g. /dev/pts/3."""
-        return self._port
-
-    @property
-    def error(self) -> BaseException | None:
-        """What stopped the writer thread, or None."""
-        return self._error
-
-    @property
-    def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
 
     def stats(self) -> SimulatedGloveStats:
         """A copy of the writer's counters."""
         return replace(self._stats)
 
-    # -- lifecycle ------------------------------------------------------------------------------
-
-    def start(self) -> SimulatedGloveUnit:
-        if self._closed:
-            raise RuntimeError("SimulatedGloveUnit: cannot start after close()")
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name="glove-sim", daemon=True)
-            self._thread.start()
-        return self
-
-    def close(self, timeout_s: float = 2.0) -> None:
-        """Stop the writer and close both pty ends. A reader still attached then fails with
-        an I/O error, as with an unplugged USB adapter: close the reader first. Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout_s)
-            if self._thread.is_alive():
-                log.warning("glove simulator did not stop within %.1f s", timeout_s)
-                return  # leave the fds to the thread rather than close them under it
-        self._close_master()
-        os.close(self._slave)
-
-    def __enter__(self) -> SimulatedGloveUnit:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def inject(self, fault: str) -> None:
+        """A simulated lab's glove fault (:attr:`faults`)."""
+        if fault == "glove_hang_up":
+            self.hang_up()
+        elif fault == "glove_stop":
+            self.stop_streaming()
+        elif fault == "crc_storm":
+            self.crc_error_next(200)
+        else:
+            raise ValueError(f"unknown glove fault {fault!r} (known: {', '.join(self.faults)})")
 
     # -- one-shot faults ------------------------------------------------------------------------
 
@@ -206,59 +149,9 @@ class SimulatedGloveUnit:
         with self._lock:
             self._garbage += data
 
-    def stop_streaming(self) -> None:
-        """The line goes quiet; the device keeps counting, so resuming shows a gap."""
-        with self._lock:
-            self._streaming = False
-
-    def resume_streaming(self) -> None:
-        with self._lock:
-            self._streaming = True
-
-    def hang_up(self, timeout_s: float = 1.0) -> None:
-        """Close the pty master mid-stream: the reader's next read fails (EIO), as when the
-        unit is unplugged. Returns once the master is closed."""
-        if self._thread is None or not self._thread.is_alive():
-            self._close_master()
-            return
-        self._hangup.set()
-        if not self._hung_up.wait(timeout_s):
-            raise TimeoutError("glove simulator did not hang up")
-
     # -- writer thread --------------------------------------------------------------------------
 
-    def _run(self) -> None:
-        try:
-            t0 = self._clock()
-            k = 0  # frames scheduled so far
-            while not self._stop.is_set():
-                if self._hangup.is_set():
-                    self._close_master()
-                    self._hung_up.set()
-                    return
-                now = self._clock()
-                due = t0 + k * self._host_period_s
-                if now < due:
-                    self._stop.wait(min(due - now, 0.02))
-                    continue
-                lag_frames = int((now - due - _MAX_LAG_S) / self._host_period_s)
-                if lag_frames > 0:
-                    self._skip_frames(lag_frames)
-                    k += lag_frames
-                    continue
-                self._emit(due - t0)
-                k += 1
-                self._flush()
-        except BaseException as exc:  # report everything: a dead simulator must not look quiet
-            self._error = exc
-            log.error("glove simulator failed: %r", exc)
-            if self._on_error is not None:
-                try:
-                    self._on_error(exc)
-                except Exception:
-                    log.exception("glove simulator on_error callback raised")
-
-    def _skip_frames(self, n: int) -> None:
+    def _skip(self, n: int) -> None:
         self._sequence += n
         self._device_us += n * self._period_us
         self._stats.frames_sampled += n
@@ -307,11 +200,9 @@ class SimulatedGloveUnit:
             frame[int(draws[4] * len(frame))] ^= flip
         self._stats.faults_injected += bool(garbage) + corrupt + bad_crc + out_of_range
 
-        if self._tx and len(self._tx) + len(garbage) + len(frame) > _TX_LIMIT:
+        if not self._queue(garbage + frame):
             self._stats.overflows += 1
             return
-        self._tx += garbage
-        self._tx += frame
         self._stats.frames_written += 1
 
     def _take(self, fault: str) -> bool:
@@ -325,24 +216,3 @@ class SimulatedGloveUnit:
             raise ValueError(f"number of frames must be >= 0, got {n}")
         with self._lock:
             self._one_shot[fault] += n
-
-    def _flush(self) -> None:
-        if not self._tx:
-            return
-        try:
-            written = os.write(self._master, self._tx)
-        except BlockingIOError:
-            return  # pty buffer full: keep the bytes, later frames overflow
-        except OSError as exc:
-            # EIO: no slave side any more. Nothing the device could do either; keep streaming
-            # into the void rather than fail, as a UART would.
-            if exc.errno != errno.EIO:
-                raise
-            self._tx.clear()
-            return
-        del self._tx[:written]
-
-    def _close_master(self) -> None:
-        if self._master_open:
-            self._master_open = False
-            os.close(self._master)

@@ -1,10 +1,11 @@
 """The simulated devices of a simulated rig file, built in one place.
 
 A simulated rig runs the lab's drivers against simulated devices that speak the real protocols:
-a simulated drive of the rig file's kind on a CAN bus (:mod:`hardware.drives`), and the glove
-unit on a pseudo-terminal. Behind the drive's motor shaft is a plant: the simulated subject's
-world (:class:`WorldPlant`) or, with no subject, a wheel held by a relaxed hand
-(:class:`HeldWheel`, enough to see torque and motion in the fault tests).
+a simulated drive of the rig file's kind on a CAN bus (:mod:`hardware.drives`), and a grip
+device of the rig file's ``[glove]`` kind (:mod:`hardware.grips`: the glove unit's frames or
+text lines on a pseudo-terminal, samples on an LSL outlet). Behind the drive's motor shaft is
+a plant: the simulated subject's world (:class:`WorldPlant`) or, with no subject, a wheel held
+by a relaxed hand (:class:`HeldWheel`, enough to see torque and motion in the fault tests).
 
 :func:`simulated_devices` builds them; the live path (python-can's virtual bus, in the loop's
 process) and the simulated lab process (``hardware.sim.lab``, over ``udp_loopback``) both call
@@ -21,9 +22,9 @@ import can
 import numpy as np
 
 from steerlab.hardware.drives import SimulatedDriveNode, drive_kind
+from steerlab.hardware.grips import SimulatedGrip, grip_kind
 
 if TYPE_CHECKING:
-    from steerlab.hardware.glove.simulated import SimulatedGloveUnit
     from steerlab.hardware.rig import RigConfig
     from steerlab.protocols.session import TrialSetup
 
@@ -61,7 +62,7 @@ class WorldPlant:
         )
 
     def grip(self, _t: float) -> tuple[float, float]:
-        # Called by the glove simulator's thread: a cached pair, never the world itself.
+        # Called by the grip simulator's thread: a cached pair, never the world itself.
         return self._grip
 
     def begin_trial(self, setup: TrialSetup) -> None:
@@ -100,7 +101,7 @@ class SimulatedDevices:
 
     plant: WorldPlant | HeldWheel
     drive: SimulatedDriveNode
-    glove: SimulatedGloveUnit
+    glove: SimulatedGrip  # of the rig's [glove] kind; the host reaches it at glove.address
     physiology: dict[str, Any] | None = None
 
     @property
@@ -123,12 +124,11 @@ def simulated_devices(
     subject: int | None,
     drive_config: Any = None,
 ) -> SimulatedDevices:
-    """The simulated drive (of the rig's kind, on ``open_bus()``) and glove unit of ``rig``,
-    started. ``subject``: subject N of the rig's population at the wheel (its ``[simulation]``
-    table), or None for a wheel held by a relaxed hand. ``drive_config``: the drive config the
-    node answers as (default ``rig.drive``; a copy on another channel, say)."""
-    from steerlab.hardware.glove.simulated import SimulatedGloveUnit
-
+    """The simulated drive (of the rig's kind, on ``open_bus()``) and grip device (of its
+    ``[glove]`` kind) of ``rig``, started. ``subject``: subject N of the rig's population at
+    the wheel (its ``[simulation]`` table), or None for a wheel held by a relaxed hand.
+    ``drive_config``: the drive config the node answers as (default ``rig.drive``; a copy on
+    another channel, say)."""
     config = drive_config if drive_config is not None else rig.drive
     physiology = None
     plant: WorldPlant | HeldWheel
@@ -148,7 +148,8 @@ def simulated_devices(
     node = drive_kind(config.kind).simulate(config, plant, open_bus, rig.simulation)
     try:
         node.start()
-        glove = SimulatedGloveUnit(plant.grip, rig.glove.calibration).start()
+        glove = grip_kind(rig.glove.kind).simulate(rig.glove, plant.grip)
+        glove.start()
     except BaseException:
         node.close()
         raise

@@ -1,15 +1,18 @@
-"""The simulated lab devices in a process of their own: the CiA 402 drive node and the glove unit,
-reached as a lab's host reaches them (a CAN bus shared between processes, ``udp_loopback``, and a
-serial port, a pty). The host (``steerlab run``, :class:`hardware.live.ProcessLoop`) then holds
-only what it holds in the lab, and a killed host is a real host kill: the drive goes on and must
-cut the torque by itself (its consumer heartbeat 0x1016, abort connection option 0x6007).
+"""The simulated lab devices in a process of their own: the drive node and the grip device,
+reached as a lab's host reaches them (a CAN bus shared between processes, ``udp_loopback``, and,
+as the rig file's ``[glove] kind`` says, a serial port (a pty) or an LSL stream). The host
+(``steerlab run``, :class:`hardware.live.ProcessLoop`) then holds only what it holds in the lab,
+and a killed host is a real host kill: the drive goes on and must cut the torque by itself (its
+consumer heartbeat 0x1016, abort connection option 0x6007).
 
 Run it as ``python -m hardware.sim.lab --rig RIG.toml --channel NAME`` (the rig file is a
-simulated rig's: its ``[drive]``, ``[safety]`` and glove calibration). It prints one JSON line
-``{"ready": true, "pty": ..., "channel": ..., "pid": ...}``, then answers one JSON line per
-command line on stdin (``{"op": "status"}``, ``{"op": "inject", "fault": NAME}``,
-``{"op": "collect"}``: a full garbage collection, timed, ``{"op": "close"}``); end of stdin
-closes it. :class:`LabProcess` is the parent's handle and
+simulated rig's: its ``[drive]``, ``[safety]`` and ``[glove]``). It prints one JSON line
+``{"ready": true, "grip": ..., "pty": ..., "channel": ..., "pid": ...}`` (``grip``: where the
+host reaches the grip device, :meth:`hardware.grips.GripKind.at`: the pty's path for the glove
+unit and a text-line device, which ``pty`` also gives, an LSL stream's source id), then
+answers one JSON line per command line on stdin (``{"op": "status"}``,
+``{"op": "inject", "fault": NAME}``, ``{"op": "collect"}``: a full garbage collection, timed,
+``{"op": "close"}``); end of stdin closes it. :class:`LabProcess` is the parent's handle and
 :func:`host_rig_text` writes the host's rig file for it.
 
 The world behind the motor shaft is, by default, a wheel (Table 1's 0.3 kg·m²) held by a relaxed
@@ -46,7 +49,9 @@ from steerlab.hardware.drives import on_bus
 from steerlab.hardware.sim.devices import simulated_devices
 from steerlab.protocols.session import TrialSetup
 
-#: Faults of the glove unit; the drive's own come from its kind (``SimulatedDriveNode.faults``).
+#: Faults of Steerlab's glove unit; the drive's own come from its kind
+#: (``SimulatedDriveNode.faults``), another grip kind's from its device (``SimulatedGrip.faults``:
+#: ``glove_stop`` and ``glove_hang_up`` for every kind, the LSL outlet destroyed for the latter).
 GLOVE_FAULTS = (
     "glove_hang_up",  # the glove's serial port closes
     "glove_stop",  # the glove stream stops
@@ -59,9 +64,10 @@ AUTHKEY_ENV = "STEERLAB_LAB_AUTHKEY"
 
 
 class SimulatedLab:
-    """The simulated drive (of the rig's kind) and glove unit of a simulated rig file, on
-    ``channel`` (udp_loopback); with ``subject``, the rig's full simulated world with that
-    subject of its population (:func:`hardware.sim.devices.simulated_devices`)."""
+    """The simulated drive (of the rig's kind) and grip device (of its ``[glove]`` kind) of a
+    simulated rig file, the drive on ``channel`` (udp_loopback); with ``subject``, the rig's
+    full simulated world with that subject of its population
+    (:func:`hardware.sim.devices.simulated_devices`)."""
 
     def __init__(self, rig_path: str | None, channel: str, subject: int | None = None) -> None:
         from steerlab.hardware.rig import load_rig
@@ -85,7 +91,7 @@ class SimulatedLab:
 
     @property
     def faults(self) -> tuple[str, ...]:
-        return (*self.node.faults, *GLOVE_FAULTS)
+        return (*self.node.faults, *self.glove.faults)
 
     # -- the host's loop tells the simulated subject about the trial (control socket) --------
     def serve(self, authkey: bytes) -> str:
@@ -144,13 +150,8 @@ class SimulatedLab:
         return {"t": time.monotonic(), **self.node.status(), "cpu_s": sum(os.times()[:2])}
 
     def inject(self, fault: str) -> None:
-        g = self.glove
-        if fault == "glove_hang_up":
-            g.hang_up()
-        elif fault == "glove_stop":
-            g.stop_streaming()
-        elif fault == "crc_storm":
-            g.crc_error_next(200)
+        if fault in self.glove.faults:
+            self.glove.inject(fault)
         elif fault in self.node.faults:
             self.node.inject(fault)
         else:
@@ -233,7 +234,8 @@ def main(argv: list[str] | None = None) -> int:
         say(
             {
                 "ready": True,
-                "pty": lab.glove.port,
+                "grip": lab.glove.address,
+                "pty": getattr(lab.glove, "port", None),  # a grip device on a pty
                 "channel": args.channel,
                 "pid": os.getpid(),
                 "control": control,
@@ -305,7 +307,10 @@ class LabProcess:
         if not ready.get("ready"):
             self.close()
             raise RuntimeError(f"the simulated lab did not come up: {ready}")
-        self.pty = ready["pty"]
+        #: where the host reaches the grip device (hardware.grips.GripKind.at)
+        self.grip: str = ready["grip"]
+        #: the grip device's pty (the glove unit, a text-line device), or None (an LSL stream)
+        self.pty: str | None = ready["pty"]
         self.pid = ready["pid"]
         self.control_address: str | None = ready.get("control")
 
@@ -367,16 +372,32 @@ class LabProcess:
         self.close()
 
 
+def _set_glove_source_id(text: str, source_id: str) -> tuple[str, int]:
+    """``text`` with ``[glove] source_id`` set (replaced where the rig file gives one: a TOML
+    key may not appear twice), and how many ``[glove]`` tables there were."""
+    line = f'source_id = "{source_id}"'
+    table = re.compile(r"(?ms)^(\[glove\][^\n]*\n)(.*?)(?=^\[|\Z)")
+
+    def put(m: re.Match[str]) -> str:
+        body, n = re.subn(r"(?m)^source_id\s*=.*$", line, m.group(2))
+        return m.group(1) + (body if n else f"{line}\n{body}")
+
+    return table.subn(put, text)
+
+
 def host_rig_text(lab: LabProcess, simulated_rig_text: str) -> str:
     """The host's rig file for ``lab``: the simulated rig's text with the drive on the lab's
-    udp_loopback channel, the glove on its pty and no ``[simulation]`` table (the host sees a
-    lab)."""
+    udp_loopback channel, the grip device where the lab has it (the glove's ``port`` its pty;
+    an LSL stream's ``source_id``) and no ``[simulation]`` table (the host sees a lab)."""
     text = simulated_rig_text.split("\n[simulation]")[0]
     text, n1 = re.subn(r'(?m)^interface = "virtual"', f'interface = "{UDP_LOOPBACK}"', text)
     text, n2 = re.subn(r'(?m)^channel = "[^"]*"', f'channel = "{lab.channel}"', text)
-    text, n3 = re.subn(r'(?m)^port = "simulated"', f'port = "{lab.pty}"', text)
+    if lab.pty is not None:
+        text, n3 = re.subn(r'(?m)^port = "simulated"', f'port = "{lab.pty}"', text)
+    else:
+        text, n3 = _set_glove_source_id(text, lab.grip)
     if (n1, n2, n3) != (1, 1, 1):
-        raise ValueError("not a simulated rig file's text (interface, channel, glove port)")
+        raise ValueError("not a simulated rig file's text (interface, channel, [glove] port)")
     return text
 
 

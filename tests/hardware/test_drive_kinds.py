@@ -27,6 +27,9 @@ def test_every_shipped_rig_file_names_a_kind_that_loads():
         "sensodrive-sim.toml": "sensodrive",
         "sensodrive.toml": "sensodrive",
         "simulated.toml": "cia402",
+        # the simulated rig with its grip from an LSL stream, a text-line device (hardware.grips)
+        "simulated-lsl-grip.toml": "cia402",
+        "simulated-text-grip.toml": "cia402",
     }
 
 

@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import threading
-import time
-from collections.abc import Callable
-
 import pytest
 import serial
 
@@ -13,6 +9,7 @@ from steerlab.hardware.glove.calibration import GloveCalibration
 from steerlab.hardware.glove.protocol import encode_frame
 from steerlab.hardware.glove.unit import GloveUnitError, SerialGloveUnit
 from steerlab.hardware.interfaces import GloveUnit, GripReading
+from tests.helpers import assert_no_threads, wait_for
 
 CAL = GloveCalibration.from_config(
     {
@@ -22,19 +19,10 @@ CAL = GloveCalibration.from_config(
 )
 
 
-def wait_for(condition: Callable[[], object], timeout_s: float = 2.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        time.sleep(0.005)
-
-
 @pytest.fixture(autouse=True)
 def no_thread_left_behind():
     yield
-    leftovers = [t.name for t in threading.enumerate() if t.name.startswith("glove-")]
-    assert not leftovers, f"threads still running: {leftovers}"
+    assert_no_threads("glove-")
 
 
 def test_exact_bytes_in_calibrated_reading_out():

@@ -10,32 +10,9 @@ import pytest
 from steerlab.hardware.live import RigDevices
 from steerlab.hardware.rig import load_rig
 from steerlab.protocols.protocol import parse_protocol
+from tests.session_helpers import short_protocol
 
-SHORT_PROTOCOL = """
-name = "short-test"
-loop_rate_hz = 1000.0
-[trial]
-periods = 1
-run_in_s = 1.0
-fade_in_s = 0.5
-fade_out_s = 0.5
-familiarization_trials = 0
-repetitions = 1
-break_between_trials_s = 0.0
-break_between_conditions_s = 0.0
-[perturbation]
-period_s = 2.5
-n_bands = 10
-first_bin = 3
-f_max_hz = 20.0
-seed = 1
-[[conditions]]
-name = "BT12"
-boundary_deg = 12.0
-[[conditions]]
-name = "PT"
-boundary_deg = 0.0
-"""
+SHORT_PROTOCOL = short_protocol("short-test")
 # Samples of one SHORT_PROTOCOL trial at 1 kHz: run-in 1 s + one 2.5 s period + fade-out 0.5 s.
 SHORT_TRIAL_SAMPLES = 4000
 

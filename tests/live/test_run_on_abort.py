@@ -22,38 +22,12 @@ from steerlab.protocols.engine import SessionEngine, State
 from steerlab.protocols.protocol import parse_protocol
 from steerlab.protocols.session import build_plan
 from tests.helpers import ROOT
+from tests.session_helpers import SHORT_TRIALS_KW, THREE_CONDITIONS, short_protocol
 
 from .conftest import STARVED
 
 # Three short trials (1.75 s each at 1 kHz), no breaks.
-ABORT_PROTOCOL = """
-name = "abort-test"
-loop_rate_hz = 1000.0
-[trial]
-periods = 1
-run_in_s = 0.5
-fade_in_s = 0.25
-fade_out_s = 0.25
-familiarization_trials = 0
-repetitions = 1
-break_between_trials_s = 0.0
-break_between_conditions_s = 0.0
-[perturbation]
-period_s = 1.0
-n_bands = 5
-first_bin = 1
-f_max_hz = 20.0
-seed = 1
-[[conditions]]
-name = "BT12"
-boundary_deg = 12.0
-[[conditions]]
-name = "BT8"
-boundary_deg = 8.0
-[[conditions]]
-name = "PT"
-boundary_deg = 0.0
-"""
+ABORT_PROTOCOL = short_protocol("abort-test", **SHORT_TRIALS_KW, conditions=THREE_CONDITIONS)
 INJECTED = "non-finite motor command input"
 
 

@@ -228,12 +228,12 @@ import os, sys, time
 import steerlab.protocols.datafile as d
 where = sys.argv[1]
 if where == "attributes":  # inside h5py.File(NAME.h5.creating, "w"), attributes half-written
-    real = d._set_attrs
-    def _set_attrs(obj, attrs):
+    real = d.set_attrs
+    def set_attrs(obj, attrs):
         real(obj, dict(list(attrs.items())[:3]))
         obj.file.flush()
         print("PAUSED", flush=True); time.sleep(60)
-    d._set_attrs = _set_attrs
+    d.set_attrs = set_attrs
 else:  # the file complete under its temporary name, not yet renamed
     def fsync(fd):
         print("PAUSED", flush=True); time.sleep(60)
@@ -325,7 +325,7 @@ def test_a_file_left_open_is_read_without_changing_a_sample(tmp_path):
     path = _killed_in_write_mode(tmp_path, swmr=False)
     os.rename(path, tmp_path / "S01.h5")
     path = tmp_path / "S01.h5"
-    from steerlab.protocols.datafile import _open_for_reading
+    from steerlab.protocols.datafile import open_for_reading
 
-    with _open_for_reading(path) as f:
+    with open_for_reading(path) as f:
         np.testing.assert_array_equal(f["x"][()], np.arange(3000.0))

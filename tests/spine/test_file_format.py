@@ -88,7 +88,8 @@ def test_compressed_losslessly_with_counts_and_checksums(fast_protocol, tmp_path
                     assert d.dtype == np.int32 and d.attrs["scale_factor"] == q[name], name
                     # bit for bit the values the sensor model gave (float64)
                     np.testing.assert_array_equal(read_channel(d), values, err_msg=name)
-                elif name == "time_s":
+                elif name in ("time_s", "host_time_s"):  # float64: a time line
+                    assert d.dtype == np.float64, name
                     np.testing.assert_array_equal(d[()], values)
                 else:
                     assert d.dtype == np.float32, name

@@ -49,7 +49,8 @@ def test_batch_and_sample_by_sample_give_the_same_signals(fast_protocol):
     live = _collect(SessionEngine(short, simulated_rig(subj).device_loop(block_s=0.05)))
     assert batch.keys() == live.keys() and len(batch) == 2
     for key in batch:
-        assert batch[key].keys() == live[key].keys()
+        # The batch loop computes a block at once: no instant of a read (host_time_s).
+        assert batch[key].keys() == live[key].keys() - {"host_time_s"}
         for c in batch[key]:
             np.testing.assert_allclose(live[key][c], batch[key][c], rtol=0, atol=1e-12, err_msg=c)
         assert np.std(batch[key]["wheel_angle_rad"]) > 0.01  # not trivially zero
