@@ -258,8 +258,9 @@ class LabClock:
             case ev.SamplesAcquired():
                 self.anchor(event)
                 host = event.channels.get("host_time_s")
-                if event.key in self._host_stamped and host is not None and event.n:
-                    last = float(host[-1]) + self.offset_s
+                stamped = event.key in self._host_stamped and self.offset_s is not None
+                if stamped and host is not None and event.n:
+                    last = float(host[-1]) + (self.offset_s or 0.0)
                     self._last_stamp[event.key] = (event.start + event.n - 1, last)
             case ev.TrialMark(kind="resume") if self.source == HOST:
                 if event.key in self._anchor and event.key not in self._host_stamped:

@@ -450,10 +450,9 @@ def clock_to_recording(rec: XdfRecording, subject: str | None = None) -> tuple[f
 
 def _marker_window(tr: SessionTrial, t: float, how: str) -> TrialWindow:
     """The trial whose time line's 0 was stamped ``t`` on the recording's clock."""
-    times = None
     if tr.lsl_times is not None and tr.lsl_ref is not None:
-        times = t + (tr.lsl_times - tr.lsl_ref)
-    return TrialWindow(tr, t, how, times)
+        return TrialWindow(tr, t, how, t + (tr.lsl_times - tr.lsl_ref))
+    return TrialWindow(tr, t, how)
 
 
 def match_trials(
