@@ -209,16 +209,13 @@ def test_trials_without_a_clock_and_no_markers_are_refused(tmp_path, session_dir
     assert "no Steerlab marker stream and no trial records lsl_clock_s" in err
 
 
-def _steerlab_streams(w, *, subject="S01", offset=0.0, starts=T0, recorder_ahead=0.0):
-    """Steerlab's marker stream as protocols/lsl_publisher.py makes it (JSON markers stamped at
-    each trial's sample 0), on a session computer whose clock is ``recorder_ahead`` s behind
-    the recorder's (clock offsets say so)."""
+def _marker_stream(w, subject):
+    """The header of Steerlab's marker stream of ``subject``, added to ``w``; its stream id."""
     from xml.etree import ElementTree as ET
 
     desc = ET.Element("desc")
-    st = ET.SubElement(desc, "steerlab")
-    ET.SubElement(st, "subject").text = subject
-    m = w.add_stream(
+    ET.SubElement(ET.SubElement(desc, "steerlab"), "subject").text = subject
+    return w.add_stream(
         stream_header_xml(
             name=f"Steerlab {subject} markers",
             type="Markers",
@@ -229,6 +226,13 @@ def _steerlab_streams(w, *, subject="S01", offset=0.0, starts=T0, recorder_ahead
             desc=desc,
         )
     )
+
+
+def _steerlab_streams(w, *, subject="S01", offset=0.0, starts=T0, recorder_ahead=0.0):
+    """Steerlab's marker stream as protocols/lsl_publisher.py makes it (JSON markers stamped at
+    each trial's sample 0), on a session computer whose clock is ``recorder_ahead`` s behind
+    the recorder's (clock offsets say so)."""
+    m = _marker_stream(w, subject)
     texts, stamps = [], []
     for k, (key, t0) in enumerate(starts.items()):
         texts.append([json.dumps({"event": "trial_start", "key": key, "trial_index": k + 1})])

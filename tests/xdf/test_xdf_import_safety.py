@@ -13,10 +13,10 @@ import pytest
 
 import steerlab.protocols.trial_extras as trial_extras
 from steerlab.protocols.writelock import WriterLock
-from steerlab.protocols.xdf_writer import ChannelSpec, XdfWriter, stream_header_xml
+from steerlab.protocols.xdf_writer import ChannelSpec, XdfWriter
 from tests.helpers import cli
 
-from .test_xdf_import import T0, _emg, _header, _set_clock, _trials, _write_xdf
+from .test_xdf_import import T0, _emg, _header, _marker_stream, _set_clock, _trials, _write_xdf
 
 
 def _s02_starts(folder):
@@ -140,21 +140,7 @@ def test_channel_names_two_streams_would_share_are_kept_apart(tmp_path, session_
 def _markers(w, subject, recorder_ahead, starts):
     """A Steerlab marker stream of ``subject``, whose computer runs ``recorder_ahead`` s behind
     the recorder (its clock offsets), stamped at each trial start."""
-    from xml.etree import ElementTree as ET
-
-    desc = ET.Element("desc")
-    ET.SubElement(ET.SubElement(desc, "steerlab"), "subject").text = subject
-    m = w.add_stream(
-        stream_header_xml(
-            name=f"Steerlab {subject} markers",
-            type="Markers",
-            channel_count=1,
-            nominal_srate=0,
-            channel_format="string",
-            source_id=f"steerlab:test:{subject}:markers",
-            desc=desc,
-        )
-    )
+    m = _marker_stream(w, subject)
     texts = [[json.dumps({"event": "trial_start", "key": k})] for k in starts]
     w.write_samples(m, [t - recorder_ahead for t in starts.values()], texts)
     for t in (990.0, 1005.0, 1020.0):
