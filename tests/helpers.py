@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -31,6 +32,25 @@ LENIENT_LIMITS = {
     "host_heartbeat_timeout_ms": "100",  # the longest a rig file may set (docs/rig-config.md)
     "sdo_timeout_s": "2.0",
 }
+
+
+def short_protocol_text(loop_rate_hz: float = 200.0, no_breaks: bool = False) -> str:
+    """The paper's protocol at ``loop_rate_hz`` with a 2 s period: 4.75 s trials; with
+    ``no_breaks``, no break between trials or conditions either."""
+    text = fast_protocol_text(loop_rate_hz=loop_rate_hz, run_in_s=0.5, periods=2)
+    values = {
+        "period_s": "2.0",
+        "n_bands": "8",
+        "first_bin": "1",
+        "fade_in_s": "0.25",
+        "fade_out_s": "0.25",
+    }
+    if no_breaks:
+        values |= {"break_between_trials_s": "0.0", "break_between_conditions_s": "0.0"}
+    for key, value in values.items():
+        text, n = re.subn(rf"(?m)^{key} = \S+", f"{key} = {value}", text)
+        assert n == 1, key
+    return text
 
 
 def lenient_rig_text(text: str | None = None, **limits: str) -> str:

@@ -27,7 +27,7 @@ from steerlab.protocols.datafile import SessionFile, SessionWriter
 from steerlab.protocols.engine import SessionEngine
 from steerlab.protocols.protocol import load_protocol, parse_protocol
 from steerlab.protocols.session import build_plan
-from tests.helpers import ROOT, fast_protocol_text
+from tests.helpers import ROOT, short_protocol_text
 
 # -- threads -----------------------------------------------------------------------------------
 
@@ -65,20 +65,6 @@ def test_thread_check_catches_a_leaked_thread():
 
 
 # -- a short protocol and a paced loop -------------------------------------------------------
-
-
-def short_protocol_text(loop_rate_hz: float = 200.0) -> str:
-    """The paper's protocol at 200 Hz with a 2 s period: 4.75 s trials."""
-    text = fast_protocol_text(loop_rate_hz=loop_rate_hz, run_in_s=0.5, periods=2)
-    for key, value in {
-        "period_s": "2.0",
-        "n_bands": "8",
-        "first_bin": "1",
-        "fade_in_s": "0.25",
-        "fade_out_s": "0.25",
-    }.items():
-        text = re.sub(rf"(?m)^{key} = \S+", f"{key} = {value}", text)
-    return text
 
 
 class PacedLoop:

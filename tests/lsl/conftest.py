@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import re
 import threading
 import time
 
@@ -11,24 +10,12 @@ import numpy as np
 import pytest
 
 from steerlab.protocols.protocol import parse_protocol
-from tests.helpers import fast_protocol_text
+from tests.helpers import short_protocol_text as _short_protocol_text
 
 
 def short_protocol_text(loop_rate_hz: float = 200.0) -> str:
-    """The paper's protocol at 200 Hz with a 2 s period: 4.75 s trials (950 samples)."""
-    text = fast_protocol_text(loop_rate_hz=loop_rate_hz, run_in_s=0.5, periods=2)
-    for key, value in {
-        "period_s": "2.0",
-        "n_bands": "8",
-        "first_bin": "1",
-        "fade_in_s": "0.25",
-        "fade_out_s": "0.25",
-        "break_between_trials_s": "0.0",
-        "break_between_conditions_s": "0.0",
-    }.items():
-        text, n = re.subn(rf"(?m)^{key} = \S+", f"{key} = {value}", text)
-        assert n == 1, key
-    return text
+    """The shared short protocol (4.75 s trials, 950 samples at 200 Hz), without breaks."""
+    return _short_protocol_text(loop_rate_hz, no_breaks=True)
 
 
 @pytest.fixture
